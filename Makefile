@@ -1,0 +1,17 @@
+# The two commands of README.md. Both build .venv first when it is missing or stale.
+PY := .venv/bin/python
+RUN ?= runs/reproduce
+
+.PHONY: reproduce test clean-venv
+
+.venv/.installed: environment/requirements.txt pyproject.toml environment/setup_env.sh
+	environment/setup_env.sh
+
+reproduce: .venv/.installed
+	$(PY) -m freereg_lib.reproduce --out $(RUN)
+
+test: .venv/.installed
+	$(PY) -m pytest -q
+
+clean-venv:
+	rm -rf .venv

@@ -1,0 +1,127 @@
+"""Evaluation: correct correspondences, FMR, IR, IN, RR, RE, TE and RR over threshold ladders.
+
+Definitions follow the paper and the official code (``shared/paper/FACTS.md``):
+
+* a match (image pixel, cloud point) is *evaluable* when the image's true depth at the
+  pixel lies in ``depth_range``; it is *correct* when the pixel, lifted with that true
+  depth and moved into the cloud frame with the true pose, lies within ``tau_c`` of the
+  matched cloud point;
+* per pair: IR = correct / evaluable (0 when fewer than 3 are evaluable), IN = correct;
+* over pairs: FMR = % of pairs with IR > 5 %, IR and IN are means (IR in %), RR = % of pairs
+  with RE < tau_R and TE < tau_t.
+* RE is the angle of ``R_gt^T R_est``; TE is the distance between the true and estimated
+  camera centres in the cloud frame, ``|| t(T_pc_cam_gt) - t(T_pc_cam_est) ||``. A pair
+  whose solver failed has no RE / TE and is not registered.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from . import cameras
+
+
+def correct_matches(
+    uv_image: np.ndarray,
+    pts_pc: np.ndarray,
+    depth_gt: np.ndarray,
+    K_image: np.ndarray,
+    T_cam_pc_gt: np.ndarray,
+    tau_c: float = 0.3,
+    depth_range: tuple[float, float] = (0.01, 10.0),
+) -> tuple[np.ndarray, np.ndarray]:
+    """Which matches are correct.
+
+    ``uv_image (K, 2)`` image pixels, ``pts_pc (K, 3)`` their matched cloud points,
+    ``depth_gt (H, W)`` the image's true depth. Returns ``correct (K,) bool`` and
+    ``evaluable (K,) bool``; ``correct`` implies ``evaluable``.
+    """
+    uv_image = np.asarray(uv_image, dtype=np.float64).reshape(-1, 2)
+    pts_pc = np.asarray(pts_pc, dtype=np.float64).reshape(-1, 3)
+    if len(uv_image) == 0:
+        return np.zeros(0, bool), np.zeros(0, bool)
+    z = cameras.nearest_sample(np.asarray(depth_gt, dtype=np.float64), uv_image)
+    evaluable = np.isfinite(z) & (z > depth_range[0]) & (z < depth_range[1])
+    evaluable &= np.all(np.isfinite(pts_pc), axis=1)
+    lifted = cameras.transform(cameras.invert(T_cam_pc_gt), cameras.lift(uv_image, np.where(evaluable, z, 0), K_image))
+    dist = np.linalg.norm(lifted - pts_pc, axis=1)
+    correct = evaluable & (dist < tau_c)
+    return correct, evaluable
+
+
+def inlier_stats(correct: np.ndarray, evaluable: np.ndarray) -> tuple[float, int]:
+    """Per-pair IR (fraction in [0, 1]) and IN; IR is 0 with fewer than 3 evaluable matches."""
+    n_eval = int(np.count_nonzero(evaluable))
+    n_correct = int(np.count_nonzero(correct))
+    return (n_correct / n_eval if n_eval >= 3 else 0.0), n_correct
+
+
+def pose_errors(T_cam_pc_est: np.ndarray, T_cam_pc_gt: np.ndarray) -> tuple[float, float]:
+    """RE in degrees and TE in metres between two ``T_cam_pc`` poses (see module docstring)."""
+    T_est = cameras.invert(np.asarray(T_cam_pc_est, dtype=np.float64))
+    T_gt = cameras.invert(np.asarray(T_cam_pc_gt, dtype=np.float64))
+    re = cameras.rotation_error_deg(T_est[:3, :3], T_gt[:3, :3])
+    te = float(np.linalg.norm(T_gt[:3, 3] - T_est[:3, 3]))
+    return re, te
+
+
+def registered(re: float, te: float, rot_deg: float, trans_m: float) -> bool:
+    """RR test for one pair; NaN errors (a failed solve) are never registered."""
+    return bool(np.isfinite(re) and np.isfinite(te) and re < rot_deg and te < trans_m)
+
+
+def aggregate(
+    rows: list[dict],
+    rot_deg: float = 20.0,
+    trans_m: float = 0.5,
+    fmr_ratio: float = 0.05,
+    ladder: tuple[tuple[float, float], ...] = (),
+) -> dict:
+    """Dataset-level metrics from per-pair rows with keys ``IR`` (fraction), ``IN``, ``RE``, ``TE``.
+
+    Returns percentages ``FMR``, ``IR``, ``RR`` and ``RR@<deg>deg/<m>m`` for each ladder rung,
+    the mean ``IN``, the mean and median ``RE`` / ``TE`` over pairs that have an estimate, and
+    ``n_pairs`` / ``n_failed`` (pairs without an estimate). An empty list gives NaNs.
+    """
+    n = len(rows)
+    out: dict = {"n_pairs": n}
+    if n == 0:
+        for key in ("FMR", "IR", "IN", "RR", "RE", "TE", "RE_median", "TE_median"):
+            out[key] = math.nan
+        out["n_failed"] = 0
+        return out
+    ir = np.array([r["IR"] for r in rows], dtype=np.float64)
+    inn = np.array([r["IN"] for r in rows], dtype=np.float64)
+    re = np.array([r.get("RE", math.nan) for r in rows], dtype=np.float64)
+    te = np.array([r.get("TE", math.nan) for r in rows], dtype=np.float64)
+    has = np.isfinite(re) & np.isfinite(te)
+    out["FMR"] = 100.0 * float(np.mean(ir > fmr_ratio))
+    out["IR"] = 100.0 * float(np.mean(ir))
+    out["IN"] = float(np.mean(inn))
+    out["RR"] = 100.0 * float(np.mean([registered(a, b, rot_deg, trans_m) for a, b in zip(re, te)]))
+    out["RE"] = float(np.mean(re[has])) if has.any() else math.nan
+    out["TE"] = float(np.mean(te[has])) if has.any() else math.nan
+    out["RE_median"] = float(np.median(re[has])) if has.any() else math.nan
+    out["TE_median"] = float(np.median(te[has])) if has.any() else math.nan
+    out["n_failed"] = int(n - has.sum())
+    for deg, m in ladder:
+        out[f"RR@{deg:g}deg/{m:g}m"] = 100.0 * float(
+            np.mean([registered(a, b, deg, m) for a, b in zip(re, te)])
+        )
+    return out
+
+
+def true_correspondences(
+    uv_image: np.ndarray, depth_gt: np.ndarray, K_image: np.ndarray, T_cam_pc_gt: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Ground-truth 3D partners of image pixels, for tests and worked examples.
+
+    Lifts ``uv_image (K, 2)`` with the true depth; returns camera points ``(K', 3)``, the
+    same points in the cloud frame ``(K', 3)``, and the kept rows ``(K',)`` (valid depth).
+    """
+    z = cameras.nearest_sample(np.asarray(depth_gt, dtype=np.float64), uv_image)
+    keep = np.nonzero(np.isfinite(z) & (z > 0))[0]
+    uv_px = np.rint(np.asarray(uv_image, dtype=np.float64)[keep])
+    pts_cam = cameras.lift(uv_px, z[keep], K_image)
+    return pts_cam, cameras.transform(cameras.invert(T_cam_pc_gt), pts_cam), keep

@@ -1,0 +1,146 @@
+"""Pose solvers: Kabsch-RANSAC (Open3D) on 3D-3D matches and PnP-RANSAC (OpenCV) on 2D-3D.
+
+Both estimate ``T_cam_pc`` (point-cloud frame -> image camera) and return a
+:class:`PoseResult`; too few or degenerate matches give ``success=False`` with a reason,
+never an exception.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import cameras
+
+
+@dataclass
+class PoseResult:
+    """A solver's answer.
+
+    ``T_cam_pc`` is the estimate (identity when ``success`` is False); ``reason`` says why
+    a solve failed; ``inliers`` indexes the matches the final model explains; ``scale`` is
+    the similarity scale Kabsch absorbed from monocular depth (1 for PnP).
+    """
+
+    T_cam_pc: np.ndarray
+    success: bool
+    solver: str
+    reason: str = ""
+    inliers: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    scale: float = 1.0
+
+    @property
+    def n_inliers(self) -> int:
+        return int(len(self.inliers))
+
+
+def _failed(solver: str, reason: str) -> PoseResult:
+    return PoseResult(np.eye(4), False, solver, reason)
+
+
+def _finite_rows(*arrays: np.ndarray) -> np.ndarray:
+    keep = np.ones(len(arrays[0]), dtype=bool)
+    for a in arrays:
+        keep &= np.all(np.isfinite(a), axis=1)
+    return keep
+
+
+def _split_similarity(M: np.ndarray) -> tuple[np.ndarray, float]:
+    """A 4 x 4 similarity ``[sR | t]`` as a rigid ``[R | t]`` and the scale ``s``."""
+    s = float(np.cbrt(np.linalg.det(M[:3, :3])))
+    T = M.copy()
+    T[:3, :3] = M[:3, :3] / s
+    # Re-orthonormalise: the product of the solver's R and s carries rounding.
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    T[:3, :3] = U @ Vt
+    return T, s
+
+
+def kabsch_ransac(
+    pts_cam: np.ndarray,
+    pts_pc: np.ndarray,
+    inlier_m: float = 0.2,
+    iterations: int = 50_000,
+    ransac_n: int = 4,
+    with_scale: bool = True,
+    min_matches: int = 5,
+    seed: int = 0,
+) -> PoseResult:
+    """Kabsch in RANSAC on matched ``pts_cam (K, 3)`` (image side) and ``pts_pc (K, 3)``.
+
+    Uses Open3D's ``registration_ransac_based_on_correspondence``. With ``with_scale`` the
+    model is a similarity mapping the image side onto the cloud, which absorbs monocular
+    depth's global scale error (as the official code does); the returned pose is its rigid
+    part. The model is then refined on its inliers at 2x and 1x ``inlier_m``. The inlier
+    distance is measured in the point-cloud frame.
+    """
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    pts_cam = np.asarray(pts_cam, dtype=np.float64).reshape(-1, 3)
+    pts_pc = np.asarray(pts_pc, dtype=np.float64).reshape(-1, 3)
+    if len(pts_cam) != len(pts_pc):
+        raise ValueError(f"pts_cam has {len(pts_cam)} rows but pts_pc has {len(pts_pc)}")
+    rows = np.nonzero(_finite_rows(pts_cam, pts_pc))[0]
+    need = max(min_matches, ransac_n, 3)
+    if len(rows) < need:
+        return _failed("kabsch", f"{len(rows)} usable matches, Kabsch-RANSAC needs at least {need}")
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts_cam[rows]))
+    tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts_pc[rows]))
+    idx = np.arange(len(rows), dtype=np.int32)
+    corres = o3d.utility.Vector2iVector(np.stack([idx, idx], axis=1))
+    estimation = reg.TransformationEstimationPointToPoint(with_scaling=with_scale)
+    o3d.utility.random.seed(seed)
+    result = reg.registration_ransac_based_on_correspondence(
+        src, tgt, corres, inlier_m, estimation, ransac_n, [],
+        reg.RANSACConvergenceCriteria(iterations, 0.9999),
+    )
+    M = np.asarray(result.transformation)
+    src_np, tgt_np = pts_cam[rows], pts_pc[rows]
+    for factor in (2.0, 1.0):
+        resid = np.linalg.norm(src_np @ M[:3, :3].T + M[:3, 3] - tgt_np, axis=1)
+        inl = np.nonzero(resid < factor * inlier_m)[0]
+        if len(inl) < 3:
+            break
+        sel = o3d.utility.Vector2iVector(np.stack([inl, inl], axis=1).astype(np.int32))
+        M = np.asarray(estimation.compute_transformation(src, tgt, sel))
+    resid = np.linalg.norm(src_np @ M[:3, :3].T + M[:3, 3] - tgt_np, axis=1)
+    inliers = rows[resid < inlier_m]
+    if len(inliers) < 3 or not np.all(np.isfinite(M)) or np.linalg.det(M[:3, :3]) <= 1e-12:
+        return _failed("kabsch", f"RANSAC found a degenerate model ({len(inliers)} inliers)")
+    T_pc_cam, scale = _split_similarity(M)
+    return PoseResult(cameras.invert(T_pc_cam), True, "kabsch", "", inliers, scale)
+
+
+def pnp_ransac(
+    uv: np.ndarray,
+    pts_pc: np.ndarray,
+    K: np.ndarray,
+    reproj_px: float = 10.0,
+    iterations: int = 50_000,
+    min_matches: int = 8,
+    confidence: float = 0.999,
+) -> PoseResult:
+    """OpenCV ``solvePnPRansac`` on image pixels ``uv (K, 2)`` and cloud points ``pts_pc (K, 3)``."""
+    import cv2
+
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    pts_pc = np.asarray(pts_pc, dtype=np.float64).reshape(-1, 3)
+    if len(uv) != len(pts_pc):
+        raise ValueError(f"uv has {len(uv)} rows but pts_pc has {len(pts_pc)}")
+    rows = np.nonzero(_finite_rows(uv, pts_pc))[0]
+    need = max(min_matches, 4)
+    if len(rows) < need:
+        return _failed("pnp", f"{len(rows)} usable matches, PnP-RANSAC needs at least {need}")
+    try:
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(
+            pts_pc[rows], uv[rows], np.asarray(K, dtype=np.float64), None,
+            iterationsCount=iterations, reprojectionError=reproj_px, confidence=confidence,
+        )
+    except cv2.error as exc:
+        return _failed("pnp", f"OpenCV refused the problem: {str(exc).strip().splitlines()[-1]}")
+    if not ok or inl is None or len(inl) < 4:
+        return _failed("pnp", "PnP-RANSAC found no model with at least 4 inliers")
+    R, _ = cv2.Rodrigues(rvec)
+    T = cameras.make_pose(R, tvec.reshape(3))
+    return PoseResult(T, True, "pnp", "", rows[inl.reshape(-1)], 1.0)

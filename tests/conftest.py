@@ -1,0 +1,15 @@
+import numpy as np
+import pytest
+
+from freereg_lib import cameras
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(1234)
+
+
+def random_pose(rng: np.random.Generator, max_angle_deg: float = 30.0, max_t: float = 1.0) -> np.ndarray:
+    axis = rng.normal(size=3)
+    angle = np.radians(rng.uniform(-max_angle_deg, max_angle_deg))
+    return cameras.make_pose(cameras.rotation_about(axis, angle), rng.uniform(-max_t, max_t, size=3))
