@@ -1,5 +1,7 @@
 # The two commands of README.md. Both build .venv first when it is missing or stale.
 PY := .venv/bin/python
+# OpenBLAS threads spinning on a 2-core machine slow small matrix work and the raycaster.
+export OPENBLAS_NUM_THREADS ?= 1
 RUN ?= runs/reproduce
 
 .PHONY: reproduce test clean-venv

@@ -1,0 +1,143 @@
+"""Solvers recover known poses; metrics equal hand-computed values; degenerate input fails cleanly."""
+import math
+
+import numpy as np
+import pytest
+
+from freereg_lib import cameras, keypoints, metrics, pose
+from freereg_lib.datasets.icl import ICLSample
+from conftest import random_pose
+
+
+def _corrupt(pts_pc: np.ndarray, rng, fraction: float = 0.5) -> np.ndarray:
+    """Replace ``fraction`` of the partners by points of the cloud elsewhere (outliers)."""
+    out = pts_pc.copy()
+    bad = rng.choice(len(out), int(fraction * len(out)), replace=False)
+    out[bad] = pts_pc[rng.permutation(bad)] + rng.normal(scale=1.0, size=(len(bad), 3))
+    return out
+
+
+def _check_recovery(pair, rng):
+    uv = keypoints.grid_keypoints(pair.image_size, (24, 32))
+    pts_cam, pts_pc, keep = metrics.true_correspondences(uv, pair.depth_gt, pair.K_image, pair.T_cam_pc)
+    assert len(keep) > 300
+    noisy_pc = _corrupt(pts_pc, rng)
+    uv_px = np.rint(uv[keep])
+    for res in (
+        pose.kabsch_ransac(pts_cam, noisy_pc, inlier_m=0.2, iterations=50_000),
+        pose.pnp_ransac(uv_px, noisy_pc, pair.K_image, reproj_px=10.0, iterations=50_000),
+    ):
+        assert res.success, res.reason
+        re, te = metrics.pose_errors(res.T_cam_pc, pair.T_cam_pc)
+        assert re < 1.0 and te < 0.02, (res.solver, re, te)
+
+
+def test_solvers_recover_pose_on_icl_with_half_outliers(rng):
+    icl = ICLSample()
+    for i, j in [(0, 30), (120, 90)]:
+        _check_recovery(icl.pair(i, j), rng)
+
+
+def test_solvers_recover_pose_on_synthetic_with_half_outliers(rng):
+    from freereg_lib import synthetic
+
+    for seed in (0, 1):
+        _check_recovery(synthetic.make_pair("indoor", seed=seed), rng)
+
+
+def test_kabsch_with_scale_absorbs_monocular_scale(rng):
+    T = random_pose(rng, 40, 2.0)
+    pts_pc = rng.uniform(-2, 2, size=(300, 3)) + [0, 0, 5]
+    pts_cam = cameras.transform(T, pts_pc) * 1.3  # a depth estimator 30 % too far
+    res = pose.kabsch_ransac(pts_cam, pts_pc, with_scale=True, iterations=2000)
+    assert res.success and abs(res.scale - 1 / 1.3) < 1e-6
+    re, te = metrics.pose_errors(res.T_cam_pc, T)
+    assert re < 1e-4 and te < 1e-4
+
+
+@pytest.mark.parametrize("n", [0, 2, 3])
+def test_degenerate_inputs_fail_without_raising(n, rng):
+    pts = rng.normal(size=(n, 3)) + [0, 0, 3]
+    uv = rng.uniform(0, 100, size=(n, 2))
+    K = cameras.intrinsics(100, 100, 50, 50)
+    for res in (pose.kabsch_ransac(pts, pts), pose.pnp_ransac(uv, pts, K)):
+        assert not res.success
+        assert "needs at least" in res.reason
+        assert np.array_equal(res.T_cam_pc, np.eye(4))
+
+
+def test_nan_rows_are_ignored_and_collinear_points_fail(rng):
+    K = cameras.intrinsics(100, 100, 50, 50)
+    line = np.stack([np.linspace(-1, 1, 20), np.zeros(20), np.full(20, 3.0)], axis=1)
+    uv, _ = cameras.project(line, K)
+    res = pose.pnp_ransac(uv, line, K)
+    assert isinstance(res, pose.PoseResult)  # OpenCV may or may not find a model; never raises
+    pts = np.full((10, 3), np.nan)
+    assert not pose.kabsch_ransac(pts, pts).success
+
+
+def test_correct_matches_hand_computed():
+    K = cameras.intrinsics(10.0, 10.0, 1.0, 1.0)
+    depth_gt = np.full((3, 3), 2.0)
+    depth_gt[0, 0] = 0.0
+    T = cameras.make_pose(np.eye(3), [0.0, 0.0, 1.0])  # cloud frame is 1 m behind the camera
+    uv = np.array([[1.0, 1.0], [2.0, 1.0], [0.0, 0.0], [1.0, 2.0]])
+    # True partners in the cloud frame: (0,0,1), (0.2,0,1), --, (0,0.2,1).
+    pts_pc = np.array([[0.0, 0.0, 1.1], [0.2, 0.0, 1.5], [0.0, 0.0, 1.0], [0.0, 0.2, 1.29]])
+    correct, evaluable = metrics.correct_matches(uv, pts_pc, depth_gt, K, T, tau_c=0.3)
+    assert evaluable.tolist() == [True, True, False, True]
+    assert correct.tolist() == [True, False, False, True]
+    ir, inn = metrics.inlier_stats(correct, evaluable)
+    assert ir == pytest.approx(2 / 3) and inn == 2
+    assert metrics.inlier_stats(np.array([True, True]), np.array([True, True])) == (0.0, 2)
+
+
+def test_pose_errors_hand_computed():
+    T_gt = np.eye(4)
+    T_est = cameras.make_pose(cameras.rotation_about([0, 0, 1], math.radians(10)), [0.0, 0.0, 0.0])
+    re, te = metrics.pose_errors(T_est, T_gt)
+    assert re == pytest.approx(10.0) and te == pytest.approx(0.0, abs=1e-12)
+    T_est = cameras.make_pose(np.eye(3), [0.3, 0.4, 0.0])
+    assert metrics.pose_errors(T_est, T_gt) == pytest.approx((0.0, 0.5))
+
+
+def test_aggregate_hand_computed():
+    rows = [
+        {"IR": 0.5, "IN": 10, "RE": 5.0, "TE": 0.1},
+        {"IR": 0.04, "IN": 1, "RE": 30.0, "TE": 0.2},
+        {"IR": 0.1, "IN": 4, "RE": 15.0, "TE": 0.6},
+        {"IR": 0.0, "IN": 0, "RE": math.nan, "TE": math.nan},
+    ]
+    agg = metrics.aggregate(rows, 20.0, 0.5, ladder=((10.0, 0.2), (25.0, 1.0)))
+    assert agg["FMR"] == pytest.approx(50.0)
+    assert agg["IR"] == pytest.approx(16.0)
+    assert agg["IN"] == pytest.approx(3.75)
+    assert agg["RR"] == pytest.approx(25.0)
+    assert agg["RE"] == pytest.approx(50 / 3) and agg["TE"] == pytest.approx(0.3)
+    assert agg["n_failed"] == 1
+    assert agg["RR@10deg/0.2m"] == pytest.approx(25.0)
+    assert agg["RR@25deg/1m"] == pytest.approx(50.0)
+    assert math.isnan(metrics.aggregate([])["RR"])
+
+
+def test_icl_warp_pins_pose_convention():
+    """Frame j's depth, moved into frame i with the true pose, matches frame i's depth."""
+    from freereg_lib import projection
+
+    icl = ICLSample()
+    for i, j in [(0, 40), (100, 60), (200, 210)]:
+        pair = icl.pair(i, j)
+        warped, _ = projection.project_to_depth(pair.points, pair.K_image, pair.T_cam_pc, pair.image_size)
+        both = (warped > 0) & (pair.depth_gt > 0)
+        assert both.mean() > 0.3
+        assert np.median(np.abs(warped[both] - pair.depth_gt[both])) < 0.02
+
+
+def test_icl_wrong_convention_would_fail():
+    """The inverse pose must not pass the same check: the test above can fail."""
+    from freereg_lib import projection
+
+    pair = ICLSample().pair(0, 40)
+    warped, _ = projection.project_to_depth(pair.points, pair.K_image, cameras.invert(pair.T_cam_pc), pair.image_size)
+    both = (warped > 0) & (pair.depth_gt > 0)
+    assert not (both.mean() > 0.3 and np.median(np.abs(warped[both] - pair.depth_gt[both])) < 0.02)
