@@ -41,7 +41,8 @@ class FreeRegConfig:
     edge_filter_m: float = 0.2  # 3x3 depth-range edge filter on projected depth; 0 disables
     # Geometric features.
     geometric: str = "fpfh"  # "fpfh" | "fcgf"
-    voxel_size: float = 0.025
+    voxel_size: float = 0.025  # FCGF's voxel (the paper's)
+    fpfh_voxel: float = 0.05  # FPFH needs coarser voxels than FCGF to be distinctive
     fpfh_radius_factor: float = 5.0  # FPFH radius = factor * voxel
     normal_radius_factor: float = 2.0
     tau_g: float = 0.5  # pixel -> nearest feature point farther than this gets a zero feature
@@ -98,6 +99,7 @@ def config_for(dataset: str, kitti_trans_threshold: float = 3.0, **changes) -> F
             depth_max=80.0,
             edge_filter_m=0.0,
             voxel_size=0.3,
+            fpfh_voxel=0.5,
             tau_g=5.0,
             keypoint_grid=(32, 80),
             kabsch_inlier_m=4.0,

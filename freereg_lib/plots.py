@@ -14,9 +14,7 @@ FIGURES = Path(__file__).resolve().parent.parent / "figures"
 
 
 def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
+    # No backend forced: Jupyter keeps its inline backend, headless runs fall back to Agg.
     import matplotlib.pyplot as plt
 
     return plt
@@ -150,5 +148,395 @@ def bar_compare(table, metric: str, label_col: str, title: str):
     ax.set_ylabel(metric)
     ax.set_title(title)
     ax.legend()
+    fig.tight_layout()
+    return fig
+
+
+# ---- added for notebooks 00 and 02 ---------------------------------------------------------
+
+def show(fig, name: str, folder: str | Path | None = None) -> Path:
+    """``save`` the figure, show the saved PNG inline in a notebook, close the figure.
+
+    Works whatever Matplotlib backend is active (``_plt`` selects Agg, which draws nothing
+    inline), and closing avoids a second copy under the inline backend. Returns the path.
+    """
+    path = save(fig, name, folder)
+    try:
+        from IPython import get_ipython
+        from IPython.display import Image, display
+
+        if get_ipython() is not None:
+            display(Image(filename=str(path)))
+    except ImportError:  # plain Python: the file is the output
+        pass
+    _plt().close(fig)
+    return path
+
+
+def overlay_depth(image: np.ndarray, depth: np.ndarray, alpha: float = 0.7, vmax: float | None = None) -> np.ndarray:
+    """An RGB image with a depth map drawn over it where the depth is valid; ``(H, W, 3)`` float."""
+    img = np.asarray(image, dtype=np.float64) / (255.0 if np.asarray(image).dtype == np.uint8 else 1.0)
+    d = np.asarray(depth, dtype=np.float64)
+    rgb = depth_image(d, vmax)
+    out = img.copy()
+    valid = d > 0
+    out[valid] = (1 - alpha) * img[valid] + alpha * rgb[valid]
+    return out
+
+
+def depth_error_maps(image: np.ndarray, depth_gt: np.ndarray, depth_est: np.ndarray, title: str = "",
+                     est_label: str = "estimated depth"):
+    """Image, true depth, estimated depth (same colour scale) and the signed error map.
+
+    The error panel (estimate minus truth, metres, blue = too near, red = too far) carries
+    the mean absolute error over pixels where both depths are valid in its title.
+    """
+    plt = _plt()
+    gt = np.asarray(depth_gt, dtype=np.float64)
+    est = np.asarray(depth_est, dtype=np.float64)
+    valid = (gt > 0) & (est > 0) & np.isfinite(gt) & np.isfinite(est)
+    err = np.where(valid, est - gt, np.nan)
+    mae = float(np.nanmean(np.abs(err))) if valid.any() else float("nan")
+    vmax = float(np.percentile(gt[gt > 0], 98)) if (gt > 0).any() else 1.0
+    lim = float(np.nanpercentile(np.abs(err), 98)) if valid.any() else 1.0
+    fig, axes = plt.subplots(1, 4, figsize=(17, 3.6))
+    axes[0].imshow(image)
+    axes[0].set_title("RGB image", fontsize=9)
+    for ax, d, lab in ((axes[1], gt, "true depth (m)"), (axes[2], est, f"{est_label} (m)")):
+        im = ax.imshow(np.where(d > 0, d, np.nan), cmap="turbo", vmin=0, vmax=vmax)
+        fig.colorbar(im, ax=ax, fraction=0.035)
+        ax.set_title(lab, fontsize=9)
+    im = axes[3].imshow(err, cmap="RdBu_r", vmin=-lim, vmax=lim)
+    fig.colorbar(im, ax=axes[3], fraction=0.035, label="error (m)")
+    axes[3].set_title(f"estimate - truth; mean |error| = {mae:.3f} m", fontsize=9)
+    for ax in axes:
+        ax.axis("off")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+def topdown_clouds(clouds: dict, title: str = "", max_points: int = 20000, seed: int = 0,
+                   axes: tuple[int, int] = (0, 2), axis_labels: tuple[str, str] = ("x (m)", "z (m)")):
+    """Top-down scatter of several ``(N, 3)`` clouds in one frame (default the camera's x-z plane).
+
+    Each cloud is randomly thinned to ``max_points`` (seeded) and drawn in its own colour.
+    """
+    plt = _plt()
+    from matplotlib.lines import Line2D
+
+    rng = np.random.default_rng(seed)
+    fig, ax = plt.subplots(figsize=(6.5, 6))
+    handles = []
+    for k, (label, pts) in enumerate(clouds.items()):
+        p = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+        p = p[np.all(np.isfinite(p), axis=1)]
+        if len(p) > max_points:
+            p = p[rng.choice(len(p), max_points, replace=False)]
+        ax.scatter(p[:, axes[0]], p[:, axes[1]], s=0.4, alpha=0.4, color=f"C{k}", rasterized=True)
+        handles.append(Line2D([], [], ls="", marker="o", markersize=5, color=f"C{k}", label=label))
+    ax.scatter([0], [0], marker="^", s=60, color="k")
+    handles.append(Line2D([], [], ls="", marker="^", markersize=7, color="k", label="camera centre"))
+    ax.set_xlabel(axis_labels[0])
+    ax.set_ylabel(axis_labels[1])
+    ax.set_aspect("equal")
+    ax.grid(alpha=0.3)
+    ax.legend(handles=handles, fontsize=8, loc="best")
+    ax.set_title(title, fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
+def keypoint_feature_pca(image_a: np.ndarray, uv_a: np.ndarray, feats_a: np.ndarray,
+                         image_b: np.ndarray, uv_b: np.ndarray, feats_b: np.ndarray,
+                         titles: tuple[str, str] = ("image", "depth map"), title: str = "",
+                         size: float = 14.0):
+    """Keypoints of two views coloured by a 3-component PCA of their features (one basis for both).
+
+    Like :func:`pca_rgb` for per-keypoint features ``(N, C)``: equal colours mean similar
+    descriptors. Keypoints whose feature is all zeros (no feature) are drawn as grey crosses.
+    """
+    plt = _plt()
+    fa = np.asarray(feats_a, dtype=np.float64)
+    fb = np.asarray(feats_b, dtype=np.float64)
+    flat = np.concatenate([fa, fb])
+    norm = np.linalg.norm(flat, axis=1)
+    has = norm > 0
+    colours = np.full((len(flat), 3), 0.5)
+    if has.sum() >= 3:
+        x = flat[has] / norm[has, None]
+        mean = x.mean(0)
+        _, _, vt = np.linalg.svd(x - mean, full_matrices=False)
+        proj = (x - mean) @ vt[:3].T
+        lo, hi = np.percentile(proj, 1, axis=0), np.percentile(proj, 99, axis=0)
+        colours[has] = np.clip((proj - lo) / (hi - lo + 1e-8), 0, 1)
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6))
+    parts = ((image_a, uv_a, slice(0, len(fa))), (image_b, uv_b, slice(len(fa), len(flat))))
+    for ax, (img, uv, sl), sub in zip(axes, parts, titles):
+        uv = np.asarray(uv, dtype=np.float64)
+        ax.imshow(img, alpha=0.45)
+        h = has[sl]
+        ax.scatter(uv[h, 0], uv[h, 1], c=colours[sl][h], s=size, edgecolors="none")
+        ax.scatter(uv[~h, 0], uv[~h, 1], c="0.4", marker="x", s=size * 0.6, linewidths=0.6)
+        ax.set_title(sub, fontsize=9)
+        ax.axis("off")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+def noise_schedule(alphas_cumprod: np.ndarray, marks: dict | None = None, title: str = ""):
+    """``sqrt(abar_t)`` (signal) and ``sqrt(1 - abar_t)`` (noise) against ``t``, with labelled marks.
+
+    ``marks`` maps a label to a timestep, drawn as a vertical line.
+    """
+    plt = _plt()
+    a = np.asarray(alphas_cumprod, dtype=np.float64)
+    t = np.arange(len(a))
+    fig, ax = plt.subplots(figsize=(6.5, 3.6))
+    ax.plot(t, np.sqrt(a), label=r"signal weight $\sqrt{\bar\alpha_t}$")
+    ax.plot(t, np.sqrt(1 - a), label=r"noise weight $\sqrt{1-\bar\alpha_t}$")
+    for k, (label, tm) in enumerate((marks or {}).items()):
+        ax.axvline(tm, color=f"C{k + 2}", ls="--", lw=1)
+        ax.text(tm, 1.02, label, color=f"C{k + 2}", ha="center", va="bottom", fontsize=8,
+                transform=ax.get_xaxis_transform())
+    ax.set_xlabel("timestep t")
+    ax.set_ylabel("weight")
+    ax.set_ylim(0, 1.0)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="center right")
+    ax.set_title(title, fontsize=10, pad=16)
+    fig.tight_layout()
+    return fig
+
+
+def ddim_timeline(timesteps: np.ndarray, n_run: int, t_feature: int, title: str = ""):
+    """The DDIM timesteps from noise (left) to image (right): the first ``n_run`` are sampled
+    (filled), then one feature pass at ``t_feature`` (star); the rest are never run (hollow)."""
+    plt = _plt()
+    ts = np.asarray(timesteps)
+    fig, ax = plt.subplots(figsize=(10, 2.8))
+    run, rest = ts[:n_run], ts[n_run:]
+    ax.scatter(run, np.zeros(len(run)), s=60, color="C0", label=f"{n_run} guided DDIM steps")
+    ax.scatter(rest, np.zeros(len(rest)), s=60, facecolors="none", edgecolors="0.5",
+               label="not run")
+    ax.scatter([t_feature], [0], marker="*", s=320, color="C3", zorder=3,
+               label=f"feature pass at t = {t_feature}")
+    for k, tv in enumerate(ts):
+        ax.text(tv, 0.012, str(int(tv)), ha="center", va="bottom", fontsize=7, rotation=90)
+    ax.set_xlim(ts.max() + 30, min(ts.min(), t_feature) - 30)
+    ax.set_ylim(-0.05, 0.035)
+    ax.set_yticks([])
+    ax.set_xlabel("timestep t (sampling runs left to right: noise -> image)")
+    ax.legend(fontsize=8, loc="lower center", ncol=3)
+    ax.set_title(title, fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
+def metric_vs_param(table, x: str, metrics: list[str], group: str, title: str = "",
+                    xlabel: str | None = None, ylabels: dict | None = None):
+    """One panel per metric: ``metric`` against ``x``, one line per value of ``group``."""
+    plt = _plt()
+    fig, axes = plt.subplots(1, len(metrics), figsize=(5 * len(metrics), 3.8), squeeze=False)
+    for ax, m in zip(axes[0], metrics):
+        for k, (g, sub) in enumerate(table.groupby(group, sort=False)):
+            sub = sub.sort_values(x)
+            ax.plot(sub[x], sub[m], marker="o", color=f"C{k}", label=str(g))
+        ax.set_xlabel(xlabel or x)
+        ax.set_ylabel((ylabels or {}).get(m, m))
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
+# --------------------------------------------------------------------------------------
+# Added for notebooks 01 and 03: several match sets on one pair, a metric against a knob
+# (paper vs re-run), and a descriptor-similarity map over the depth keypoints.
+
+def match_panels(image: np.ndarray, depth_rgb: np.ndarray, panels: list[dict], suptitle: str = "",
+                 max_lines: int = 200, seed: int = 0, ncols: int = 1):
+    """Several match sets on the same pair, one panel each (the paper's Fig. 4 e/f/g).
+
+    Each panel is a dict with ``uv_image (K, 2)``, ``uv_depth (K, 2)``, ``correct (K,) bool``
+    (or None) and ``title``. A panel shows the image (left) and the depth map (right) with
+    up to ``max_lines`` match lines, green correct and red wrong.
+    """
+    plt = _plt()
+    h1, w1 = image.shape[:2]
+    h2, w2 = depth_rgb.shape[:2]
+    canvas = np.zeros((max(h1, h2), w1 + w2, 3))
+    canvas[:h1, :w1] = np.asarray(image, dtype=np.float64) / (255.0 if image.dtype == np.uint8 else 1.0)
+    canvas[:h2, w1:] = depth_rgb
+    n = len(panels)
+    nrows = int(np.ceil(n / ncols))
+    pw = 12.0 / max(ncols, 1) if ncols > 1 else 10.0
+    ph = pw * canvas.shape[0] / canvas.shape[1] + 0.5
+    fig, axes = plt.subplots(nrows, ncols, figsize=(pw * ncols, ph * nrows + 0.4), squeeze=False)
+    for ax, panel in zip(axes.ravel(), panels):
+        ax.imshow(canvas)
+        uv_i = np.asarray(panel["uv_image"]).reshape(-1, 2)
+        uv_d = np.asarray(panel["uv_depth"]).reshape(-1, 2)
+        correct = panel.get("correct")
+        rng = np.random.default_rng(seed)
+        k = len(uv_i)
+        show = rng.choice(k, min(k, max_lines), replace=False) if k else np.zeros(0, int)
+        for j in show:
+            ok = True if correct is None else bool(correct[j])
+            ax.plot([uv_i[j, 0], uv_d[j, 0] + w1], [uv_i[j, 1], uv_d[j, 1]],
+                    color=(0.1, 0.8, 0.2) if ok else (0.9, 0.15, 0.1), lw=0.6, alpha=0.8)
+        ax.set_title(panel.get("title", ""), fontsize=10)
+        ax.axis("off")
+    for ax in axes.ravel()[n:]:
+        ax.axis("off")
+    if suptitle:
+        fig.suptitle(suptitle, fontsize=11)
+    fig.tight_layout()
+    return fig
+
+
+def paper_vs_rerun(table, x: str, metrics: list[str], title: str, xlabel: str | None = None,
+                    ours_label: str = "re-run"):
+    """One panel per metric: the paper's ``<metric>_paper`` and the re-run's ``<metric>``
+    against the knob ``x`` (a column of ``table``, e.g. the output of ``paper.side_by_side``)."""
+    plt = _plt()
+    t = table.sort_values(x)
+    fig, axes = plt.subplots(1, len(metrics), figsize=(4.2 * len(metrics), 3.6), squeeze=False)
+    for ax, m in zip(axes.ravel(), metrics):
+        if f"{m}_paper" in t.columns:
+            ax.plot(t[x], t[f"{m}_paper"], "o--", color="0.35", label="paper (3DMatch)")
+        if m in t.columns:
+            ax.plot(t[x], t[m], "o-", color="tab:blue", label=ours_label)
+        ax.set_xlabel(xlabel or x)
+        ax.set_ylabel(m)
+        ax.set_title(m)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
+def similarity_maps(image: np.ndarray, uv_query: np.ndarray, depth_rgb: np.ndarray,
+                    uv_depth: np.ndarray, sims: dict, uv_true: np.ndarray | None = None,
+                    suptitle: str = "", size: float = 3.2, cbar_label: str = "similarity"):
+    """How one image keypoint's descriptor resembles every depth keypoint's.
+
+    Left: the image with the query pixel ``uv_query (2,)``. Then one panel per entry of
+    ``sims`` (label -> ``(M,)`` similarities of the query to the depth keypoints
+    ``uv_depth (M, 2)``), drawn as coloured dots on the (dimmed) depth map; a black-ringed
+    star marks each panel's best match, a cross ``uv_true`` (the true partner), if given.
+    """
+    plt = _plt()
+    n = 1 + len(sims)
+    fig, axes = plt.subplots(1, n, figsize=(size * 1.35 * n, size + 0.4), squeeze=False)
+    axes = axes.ravel()
+    axes[0].imshow(image)
+    axes[0].plot(uv_query[0], uv_query[1], marker="*", ms=16, color="yellow", mec="black")
+    axes[0].set_title("image, query keypoint", fontsize=9)
+    axes[0].axis("off")
+    dim = 0.35 * np.asarray(depth_rgb, dtype=np.float64)
+    for ax, (label, s) in zip(axes[1:], sims.items()):
+        s = np.asarray(s, dtype=np.float64)
+        ax.imshow(dim)
+        sc = ax.scatter(uv_depth[:, 0], uv_depth[:, 1], c=s, s=9, cmap="magma")
+        best = int(np.argmax(s))
+        ax.plot(uv_depth[best, 0], uv_depth[best, 1], marker="*", ms=14, color="yellow", mec="black")
+        if uv_true is not None:
+            ax.plot(uv_true[0], uv_true[1], marker="x", ms=12, mew=2.5, color="cyan")
+        fig.colorbar(sc, ax=ax, fraction=0.035, label=cbar_label)
+        ax.set_title(label, fontsize=9)
+        ax.axis("off")
+    if suptitle:
+        fig.suptitle(suptitle, fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
+def image_grid(images: list, titles: list[str], suptitle: str = "", cols: int = 2, width: float = 12.0):
+    """Like :func:`show_images` but each panel keeps its image's aspect ratio (wide LiDAR views
+    stay readable); RGB arrays as they are, 2-D maps with the turbo colour map."""
+    plt = _plt()
+    rows = int(np.ceil(len(images) / cols))
+    aspect = max(np.asarray(img).shape[0] / np.asarray(img).shape[1] for img in images)
+    panel_w = width / cols
+    fig, axes = plt.subplots(rows, cols, figsize=(width, rows * (panel_w * aspect + 0.45) + (0.4 if suptitle else 0)),
+                             squeeze=False)
+    for ax, img, title in zip(axes.ravel(), images, titles):
+        img = np.asarray(img)
+        ax.imshow(img, cmap="turbo" if img.ndim == 2 else None)
+        ax.set_title(title, fontsize=9)
+        ax.axis("off")
+    for ax in axes.ravel()[len(images):]:
+        ax.axis("off")
+    if suptitle:
+        fig.suptitle(suptitle)
+    fig.tight_layout()
+    return fig
+
+
+# --------------------------------------------------------------------------------------
+# Added for notebook 04 (benchmark): a re-run table beside the paper's as bars, and RR over
+# a threshold ladder (the supplementary's PnP-vs-Kabsch table).
+
+def metric_bars(table, metrics: list[str], label_col: str, title: str, ours_label: str = "re-run",
+                paper_label: str = "paper"):
+    """One panel per metric: grouped bars of the paper (``<metric>_paper``) and the re-run
+    (``<metric>``) for each row of ``table`` (e.g. ``paper.side_by_side``), labelled by
+    ``label_col``. A missing value (NaN) draws no bar and is marked "n/a" under its slot."""
+    plt = _plt()
+    labels = [str(v) for v in table[label_col]]
+    x = np.arange(len(labels))
+    fig, axes = plt.subplots(1, len(metrics), figsize=(max(3.2, 0.75 * len(labels) + 1.6) * len(metrics), 3.9),
+                             squeeze=False)
+    for ax, m in zip(axes[0], metrics):
+        for offset, col, lab, colour in ((-0.2, f"{m}_paper", paper_label, "0.6"), (0.2, m, ours_label, "tab:blue")):
+            vals = np.asarray(table[col], dtype=np.float64) if col in table.columns else np.full(len(x), np.nan)
+            ax.bar(x + offset, np.nan_to_num(vals), width=0.4, label=lab, color=colour)
+            for k in np.nonzero(~np.isfinite(vals))[0]:
+                ax.text(x[k] + offset, 0, "n/a", ha="center", va="bottom", fontsize=7, rotation=90)
+        ax.set_xticks(x, labels, rotation=30, ha="right", fontsize=8)
+        ax.set_ylabel(m)
+        ax.set_title(m)
+        ax.grid(axis="y", alpha=0.3)
+    axes[0][0].legend(fontsize=8)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
+def rr_ladder(table, rungs: list[str], label_col: str, title: str, ours_label: str = "re-run",
+              paper_label: str = "paper"):
+    """RR (%) over a ladder of (rotation, translation) thresholds, one line per row of ``table``.
+
+    ``rungs`` are the ladder's column names, loosest last (e.g. ``"RR@5deg/0.1m"``); a row's
+    re-run values are ``table[rung]`` (solid) and the paper's ``table[rung + "_paper"]``
+    (dashed, same colour). Rows without any finite value on a side draw no line for it.
+    """
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(max(6.0, 1.2 * len(rungs) + 2), 4.0))
+    x = np.arange(len(rungs))
+    for k, (_, row) in enumerate(table.iterrows()):
+        dodge = 0.06 * (k - (len(table) - 1) / 2)  # rows with equal values stay visible side by side
+        for suffix, style, who in (("", "o-", ours_label), ("_paper", "s--", paper_label)):
+            cols = [f"{r}{suffix}" for r in rungs]
+            if not all(c in table.columns for c in cols):
+                continue
+            y = np.array([row[c] for c in cols], dtype=np.float64)
+            if np.isfinite(y).any():
+                ax.plot(x + dodge, y, style, color=f"C{k}", label=f"{row[label_col]} ({who})",
+                        alpha=1.0 if suffix == "" else 0.6)
+    ax.set_xticks(x, [r.replace("RR@", "") for r in rungs], fontsize=8)
+    ax.set_xlabel("threshold (rotation / translation), tighter to looser")
+    ax.set_ylabel("RR (% of pairs registered)")
+    ax.set_ylim(-2, 102)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    ax.set_title(title, fontsize=10)
     fig.tight_layout()
     return fig

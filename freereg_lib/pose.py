@@ -65,6 +65,7 @@ def kabsch_ransac(
     with_scale: bool = True,
     min_matches: int = 5,
     seed: int = 0,
+    max_scale_ratio: float = 2.0,
 ) -> PoseResult:
     """Kabsch in RANSAC on matched ``pts_cam (K, 3)`` (image side) and ``pts_pc (K, 3)``.
 
@@ -73,6 +74,12 @@ def kabsch_ransac(
     depth's global scale error (as the official code does); the returned pose is its rigid
     part. The model is then refined on its inliers at 2x and 1x ``inlier_m``. The inlier
     distance is measured in the point-cloud frame.
+
+    A similarity can cheat: shrinking the image side towards one spot explains many matches
+    when ``inlier_m`` is large (outdoors, 4 m). Minimal samples whose edge lengths differ by
+    more than ``max_scale_ratio`` between the sides are therefore rejected (Open3D's
+    edge-length checker), and a final scale outside ``[1 / max_scale_ratio, max_scale_ratio]``
+    is a failure.
     """
     import open3d as o3d
 
@@ -90,9 +97,10 @@ def kabsch_ransac(
     idx = np.arange(len(rows), dtype=np.int32)
     corres = o3d.utility.Vector2iVector(np.stack([idx, idx], axis=1))
     estimation = reg.TransformationEstimationPointToPoint(with_scaling=with_scale)
+    checkers = [reg.CorrespondenceCheckerBasedOnEdgeLength(1.0 / max_scale_ratio)]
     o3d.utility.random.seed(seed)
     result = reg.registration_ransac_based_on_correspondence(
-        src, tgt, corres, inlier_m, estimation, ransac_n, [],
+        src, tgt, corres, inlier_m, estimation, ransac_n, checkers,
         reg.RANSACConvergenceCriteria(iterations, 0.9999),
     )
     M = np.asarray(result.transformation)
@@ -109,6 +117,8 @@ def kabsch_ransac(
     if len(inliers) < 3 or not np.all(np.isfinite(M)) or np.linalg.det(M[:3, :3]) <= 1e-12:
         return _failed("kabsch", f"RANSAC found a degenerate model ({len(inliers)} inliers)")
     T_pc_cam, scale = _split_similarity(M)
+    if not 1.0 / max_scale_ratio <= scale <= max_scale_ratio:
+        return _failed("kabsch", f"the best model scales the image side by {scale:.2f}, beyond the allowed ratio {max_scale_ratio:g}")
     return PoseResult(cameras.invert(T_pc_cam), True, "kabsch", "", inliers, scale)
 
 

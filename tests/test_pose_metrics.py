@@ -141,3 +141,18 @@ def test_icl_wrong_convention_would_fail():
     warped, _ = projection.project_to_depth(pair.points, pair.K_image, cameras.invert(pair.T_cam_pc), pair.image_size)
     both = (warped > 0) & (pair.depth_gt > 0)
     assert not (both.mean() > 0.3 and np.median(np.abs(warped[both] - pair.depth_gt[both])) < 0.02)
+
+
+def test_kabsch_scale_guard_prevents_shrink_collapse():
+    """Clustered wrong partners tempt a similarity to shrink the image side onto them (outdoors, 4 m)."""
+    rng = np.random.default_rng(0)
+    T = cameras.make_pose(cameras.rotation_about([0, 1, 0], 0.3), [1.0, 0.5, 2.0])
+    pts_pc = rng.uniform([-20, -2, 5], [20, 2, 40], size=(400, 3))
+    pts_cam = cameras.transform(T, pts_pc)
+    pts_pc[:150] = rng.normal(scale=0.7, size=(150, 3)) + [0, 0, 20]
+    unguarded = pose.kabsch_ransac(pts_cam, pts_pc, 4.0, 20_000, max_scale_ratio=1e9)
+    assert unguarded.scale < 0.1  # the failure mode exists
+    guarded = pose.kabsch_ransac(pts_cam, pts_pc, 4.0, 20_000)
+    assert guarded.success and abs(guarded.scale - 1) < 0.01
+    re, te = metrics.pose_errors(guarded.T_cam_pc, T)
+    assert re < 0.5 and te < 0.2

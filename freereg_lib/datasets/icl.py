@@ -37,8 +37,15 @@ class ICLSample:
             raise ValueError(f"{self.root}: frames {missing} have images but no pose in trajectory.log")
 
     def pose(self, frame: int) -> np.ndarray:
-        """``T_world_cam (4, 4)`` of ``frame``."""
-        return self.poses[frame]
+        """``T_world_cam (4, 4)`` of ``frame``, its rotation re-orthonormalised.
+
+        The .log stores 8 decimals, so the raw rotation is off orthonormal by ~1e-7, enough
+        to read an identical pose as a 0.006 deg error.
+        """
+        T = self.poses[frame].copy()
+        U, _, Vt = np.linalg.svd(T[:3, :3])
+        T[:3, :3] = U @ Vt
+        return T
 
     def rgb(self, frame: int) -> np.ndarray:
         return read_rgb(self.root / "color" / f"{frame:05d}.jpg")

@@ -1,0 +1,81 @@
+"""Model backends: one interface, three kinds (``shared/DESIGN.md``, "Backends").
+
+>>> backend = get_backend("stub", cfg)            # synthetic scenes, no weights, instant
+>>> backend = get_backend("tiny", cfg)            # real code path, random tiny weights
+>>> backend = get_backend("real", cfg, weights_dir="weights")   # SD v1.5 + ControlNet + ZoeDepth
+
+Every backend has ``diffusion_rgb(image, ids=None)``, ``diffusion_depth(depth, ids=None)``
+(the nine decoder layers 0..8, each ``(C, h, w) float32``) and
+``mono_depth(image, depth_gt=None)`` (metric depth ``(H, W) float64``). See
+:class:`~freereg_lib.backends.base.Backend`.
+"""
+from __future__ import annotations
+
+from .base import (
+    LAYER_STRIDES,
+    N_LAYERS,
+    SD15_LAYER_CHANNELS,
+    Backend,
+    MissingWeightsError,
+    depth_hint,
+    depth_to_uint8,
+    feature_timestep,
+    layer_sizes,
+    n_guided_steps,
+    official_resize_hw,
+)
+from .stub import StubBackend
+from .torch_backends import RealBackend, TinyBackend, resolve_device  # torch imported lazily
+
+BACKENDS = ("stub", "tiny", "real")
+_ALIASES = {"diffusers": "real", "zoedepth": "real"}
+
+
+def get_backend(name: str, cfg=None, device: str | None = None, **kw) -> Backend:
+    """Build a backend by name: ``"stub"``, ``"tiny"`` or ``"real"``.
+
+    Args:
+        name: the kind (``"diffusers"`` and ``"zoedepth"`` are accepted for ``"real"``).
+        cfg: a :class:`~freereg_lib.config.FreeRegConfig` (default: the paper's indoor one).
+        device: ``None`` (CUDA if present, else CPU), ``"cpu"`` or ``"cuda[:N]"``; the stub
+            ignores it.
+        **kw: passed to the backend class (:class:`StubBackend`, ``TinyBackend``,
+            ``RealBackend``), e.g. ``noise=`` (stub), ``resize_hw=`` (tiny),
+            ``weights_dir=`` (real).
+
+    The real backend raises :class:`MissingWeightsError` at once when its weights are not
+    on this machine.
+    """
+    if cfg is None:
+        from ..config import FreeRegConfig
+
+        cfg = FreeRegConfig()
+    key = _ALIASES.get(str(name).lower(), str(name).lower())
+    if key == "stub":
+        return StubBackend(cfg, **kw)
+    if key == "tiny":
+        return TinyBackend(cfg, device=device, **kw)
+    if key == "real":
+        return RealBackend(cfg, device=device, **kw)
+    raise ValueError(f"unknown backend {name!r}; expected one of {BACKENDS}")
+
+
+__all__ = [
+    "BACKENDS",
+    "Backend",
+    "LAYER_STRIDES",
+    "MissingWeightsError",
+    "N_LAYERS",
+    "RealBackend",
+    "SD15_LAYER_CHANNELS",
+    "StubBackend",
+    "TinyBackend",
+    "depth_hint",
+    "depth_to_uint8",
+    "feature_timestep",
+    "get_backend",
+    "layer_sizes",
+    "n_guided_steps",
+    "official_resize_hw",
+    "resolve_device",
+]

@@ -1,0 +1,656 @@
+"""Batch reproduction: a grid of notebooks run with papermill, resumable, shardable, tabulated.
+
+Command line (run it from the repository root)::
+
+    python -m freereg_lib.batch run GRID.yaml [--name NAME] [--shard i/n] [--runs-dir runs]
+                                              [--force] [--log-output] [--kernel python3]
+    python -m freereg_lib.batch merge GRID.yaml [--name NAME] [--runs-dir runs]
+
+``run`` executes every job of the grid that has not finished yet, then writes the results
+table; it exits 1 when a job failed. ``merge`` only writes the table, from whatever finished
+job or complete set of shards lies under ``runs/<name>/`` (copy the shard folders of other
+machines there first); it exits 1 when a job is still incomplete.
+
+The grid file (YAML)::
+
+    name: table1                          # run name (default: the file's stem)
+    notebooks: [notebooks/04_benchmark.ipynb]
+    base: {backend: real}                 # parameters shared by every job
+    sets:                                 # explicit parameter sets (default: one empty set)
+      - {dataset: 3dmatch, data_root: data/3dmatch}
+    grid: {seed: [0, 1]}                  # lists expanded as a cartesian product
+
+The jobs are notebooks x sets x grid points; a job's parameters are ``base | set | point``.
+A relative notebook path is looked up in the working directory, then beside the grid file.
+
+What lands on disk, under ``<runs-dir>/<name>/``::
+
+    grid.yaml                    copy of the grid last run
+    <job-id>/job.json            the job's notebook and parameters
+    <job-id>/notebook.ipynb      the executed notebook (kept when it fails)
+    <job-id>/out/                the notebook's ``out_dir``: pairs.csv, results.csv, config.json
+    <job-id>/error.txt           why the job failed
+    <job-id>/done.json           written last: the job finished
+    <job-id>/shard-<i>of<n>/     the same five, per shard, when run with ``--shard i/n``
+    results.csv, results.md      one row per job x (method, solver), the paper's Table 1 beside
+
+The contract with a benchmark notebook: its ``parameters`` cell declares ``out_dir`` (str)
+and ``shard`` (str ``"i/n"``, default ``"0/1"``); it keeps its share of the pairs with
+:func:`shard_items` and writes the rows of :func:`freereg_lib.pipeline.run_pairs` with
+:func:`write_rows` (``<out_dir>/pairs.csv``) and its summary to ``<out_dir>/results.csv``.
+The results table is always re-aggregated from ``pairs.csv`` with
+:func:`freereg_lib.pipeline.summarize`, so sharded and unsharded runs give the same table.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import itertools
+import json
+import math
+import os
+import re
+import shutil
+import sys
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .config import FreeRegConfig, config_for
+
+CONTRACT_PARAMS = ("out_dir", "shard")
+# Table 1 of the paper names datasets its own way; keys are the ``dataset`` parameter.
+PAPER_DATASETS = {"3dmatch": "3DMatch", "scannet": "ScanNet", "kitti": "Kitti-DC", "kitti_dc": "Kitti-DC"}
+PAPER_METRICS = ("FMR", "IR", "IN", "RR")
+_GRID_KEYS = {"name", "notebook", "notebooks", "base", "sets", "grid"}
+_STRING_COLUMNS = {"pair", "method", "solver", "error"}  # never parsed as numbers by read_rows
+
+
+# --------------------------------------------------------------------------------------
+# The notebook side of the contract: shards and per-pair rows.
+
+def parse_shard(shard: str) -> tuple[int, int]:
+    """``"i/n"`` -> ``(i, n)``; raises ``ValueError`` unless ``0 <= i < n``."""
+    m = re.fullmatch(r"\s*(\d+)\s*/\s*(\d+)\s*", str(shard))
+    if not m or not int(m[1]) < int(m[2]):
+        raise ValueError(
+            f"shard must be 'i/n' with 0 <= i < n (e.g. '0/1' for everything, '1/4' for the "
+            f"second of four); got {shard!r}"
+        )
+    return int(m[1]), int(m[2])
+
+
+def shard_items(items, shard: str) -> list:
+    """Shard ``i/n`` of ``items``: item ``k`` goes to shard ``k % n`` (deterministic, in order).
+
+    The ``n`` shards are disjoint and together hold every item. Cut a list to its first
+    ``n_pairs`` *before* sharding, so a sharded benchmark covers the same pairs.
+    """
+    i, n = parse_shard(shard)
+    return list(items)[i::n]
+
+
+def write_rows(rows: list[dict], out_dir: str | os.PathLike, cfg: FreeRegConfig | None = None) -> Path:
+    """Write per-pair ``rows`` to ``<out_dir>/pairs.csv``; returns that path.
+
+    Floats are written with ``repr`` (exact round trip, ``nan`` for NaN), booleans as
+    ``True`` / ``False``; rows may have different keys (missing cells stay empty). With
+    ``cfg``, ``<out_dir>/config.json`` records the configuration, which the results table
+    then aggregates with (its RR thresholds, FMR ratio and ladder).
+    """
+    import csv
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    columns = list(dict.fromkeys(k for r in rows for k in r))
+    with open(out / "pairs.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(columns)
+        for r in rows:
+            w.writerow([_cell(r[c]) if c in r else "" for c in columns])
+    if cfg is not None:
+        (out / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=1, default=str))
+    return out / "pairs.csv"
+
+
+def _cell(v) -> str:
+    import numpy as np
+
+    if isinstance(v, (bool, np.bool_)):
+        return str(bool(v))
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        return repr(float(v))  # repr is the shortest string that reads back bit-identical
+    return "" if v is None else str(v)
+
+
+def read_rows(out_dir: str | os.PathLike) -> list[dict]:
+    """The rows of ``<out_dir>/pairs.csv`` (see :func:`write_rows`) with their types back.
+
+    A column is int if every cell is an integer, float if every cell is a number, ``nan``
+    or empty (empty -> NaN), bool if every cell is ``True`` / ``False``, else str;
+    ``pair``, ``method``, ``solver`` and ``error`` are always str. A row's missing cell
+    reads back as NaN in a float column, ``""`` in a text column, and is left out of the
+    row's dict in an int or bool column.
+    """
+    import csv
+
+    path = Path(out_dir) / "pairs.csv"
+    if not path.is_file():
+        raise FileNotFoundError(f"missing {path}: the notebook did not write its per-pair rows")
+    with open(path, newline="") as f:
+        table = list(csv.reader(f))
+    if not table:
+        raise ValueError(f"{path} is empty; expected a header line")
+    header, body = table[0], table[1:]
+    parsers = {c: _column_parser(c, [line[k] for line in body]) for k, c in enumerate(header)}
+    rows = []
+    for line in body:
+        row = {}
+        for c, text in zip(header, line):
+            parsed = parsers[c](text)
+            if parsed is not _MISSING:
+                row[c] = parsed
+        rows.append(row)
+    return rows
+
+
+_MISSING = object()
+
+
+def _column_parser(name: str, cells: list[str]):
+    filled = [c for c in cells if c != ""]
+    if name in _STRING_COLUMNS or not filled:
+        return str
+    if all(_parses(int, c) for c in filled):
+        return lambda c: int(c) if c != "" else _MISSING
+    if all(_parses(float, c) for c in filled):
+        return lambda c: float(c) if c != "" else math.nan
+    if all(c in ("True", "False") for c in filled):
+        return lambda c: (c == "True") if c != "" else _MISSING
+    return str
+
+
+def _parses(kind, text: str) -> bool:
+    try:
+        kind(text)
+    except ValueError:
+        return False
+    return True
+
+
+def read_config(out_dir: str | os.PathLike) -> FreeRegConfig | None:
+    """The configuration :func:`write_rows` recorded in ``out_dir``, or None.
+
+    Fields unknown to this version of :class:`FreeRegConfig` are ignored.
+    """
+    path = Path(out_dir) / "config.json"
+    if not path.is_file():
+        return None
+    stored = json.loads(path.read_text())
+    known = {f.name: f for f in dataclasses.fields(FreeRegConfig)}
+    values = {k: _as_tuples(v) if k != "extra" else v for k, v in stored.items() if k in known}
+    return FreeRegConfig(**values)
+
+
+def _as_tuples(v):
+    return tuple(_as_tuples(x) for x in v) if isinstance(v, list) else v
+
+
+# --------------------------------------------------------------------------------------
+# Grids and jobs.
+
+@dataclass(frozen=True)
+class Job:
+    """One notebook with one parameter set.
+
+    ``notebook`` is the path as the grid wrote it (it enters the id), ``path`` the file
+    found; ``label`` holds the parameters that vary across the grid (for a readable id).
+    """
+
+    notebook: str
+    path: Path
+    params: dict
+    label: dict = field(default_factory=dict)
+
+    @property
+    def id(self) -> str:
+        return job_id(self.notebook, self.params, self.label)
+
+
+def job_id(notebook: str, params: dict, label: dict | None = None) -> str:
+    """``<notebook stem>-<k=v of label>-<10 hex>``: the hash covers the notebook path and
+    every parameter, so it is stable across runs and machines; the middle part is only for
+    reading (it is cut to 60 characters)."""
+    blob = json.dumps({"notebook": Path(notebook).as_posix(), "params": params}, sort_keys=True)
+    digest = hashlib.sha1(blob.encode()).hexdigest()[:10]
+    readable = ",".join(f"{k}={_short(v)}" for k, v in (label or {}).items())
+    readable = re.sub(r"[^A-Za-z0-9._=,+-]+", "-", readable)[:60]
+    return "-".join(p for p in (Path(notebook).stem, readable, digest) if p)
+
+
+def _short(v) -> str:
+    return Path(v).name if isinstance(v, str) and "/" in v else str(v)
+
+
+@dataclass
+class Grid:
+    name: str
+    path: Path
+    jobs: list[Job]
+
+
+def load_grid(path: str | os.PathLike) -> Grid:
+    """Read and check a grid file (format in the module docstring).
+
+    Raises ``FileNotFoundError`` for a missing grid or notebook and ``ValueError`` for a
+    malformed grid, a notebook without the contract parameters, or a job parameter the
+    notebook does not declare (a typo would otherwise be ignored silently).
+    """
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"missing grid file {path}")
+    spec = yaml.safe_load(path.read_text()) or {}
+    if not isinstance(spec, dict):
+        raise ValueError(f"{path}: a grid is a mapping with keys {sorted(_GRID_KEYS)}")
+    unknown = sorted(set(spec) - _GRID_KEYS)
+    if unknown:
+        raise ValueError(f"{path}: unknown key(s) {unknown}; a grid has {sorted(_GRID_KEYS)}")
+    notebooks = spec.get("notebooks", [spec["notebook"]] if "notebook" in spec else [])
+    if isinstance(notebooks, str):
+        notebooks = [notebooks]
+    if not notebooks:
+        raise ValueError(f"{path}: no notebook; give `notebooks: [path, ...]`")
+    base = _mapping(spec.get("base", {}), "base", path)
+    sets = spec.get("sets", [{}]) or [{}]
+    if not isinstance(sets, list):
+        raise ValueError(f"{path}: `sets` must be a list of parameter mappings")
+    sets = [_mapping(s, "sets[]", path) for s in sets]
+    axes = _mapping(spec.get("grid", {}), "grid", path)
+    for k, values in axes.items():
+        if not isinstance(values, list) or not values:
+            raise ValueError(f"{path}: grid.{k} must be a non-empty list, got {values!r}")
+    jobs = []
+    for nb in notebooks:
+        nb_path = _find_notebook(str(nb), path)
+        declared = _declared_parameters(nb_path)
+        for s in sets:
+            for point in itertools.product(*axes.values()):
+                varying = {**s, **dict(zip(axes, point))}
+                params = {**base, **varying}
+                _check_params(params, declared, nb_path, path)
+                jobs.append(Job(str(nb), nb_path, params, varying))
+    ids = [j.id for j in jobs]
+    if len(set(ids)) != len(ids):
+        raise ValueError(f"{path}: the grid repeats a job (same notebook and parameters)")
+    return Grid(str(spec.get("name") or path.stem), path, jobs)
+
+
+def _mapping(value, what: str, path: Path) -> dict:
+    if not isinstance(value, dict):
+        raise ValueError(f"{path}: `{what}` must be a mapping of parameter names to values")
+    for k, v in value.items():
+        if k in CONTRACT_PARAMS:
+            raise ValueError(f"{path}: `{k}` is set by the runner, not by the grid")
+        try:
+            json.dumps(v)
+        except TypeError:
+            raise ValueError(f"{path}: parameter {k}={v!r} is not a plain YAML value") from None
+    return value
+
+
+def _find_notebook(name: str, grid_path: Path) -> Path:
+    tried = [Path(name)] if Path(name).is_absolute() else [Path.cwd() / name, grid_path.parent / name]
+    for p in tried:
+        if p.is_file():
+            return p.resolve()
+    raise FileNotFoundError(f"notebook {name!r} not found; looked at {[str(p) for p in tried]}")
+
+
+def _declared_parameters(nb_path: Path) -> set[str]:
+    import papermill as pm
+
+    declared = set(pm.inspect_notebook(str(nb_path)))
+    missing = [p for p in CONTRACT_PARAMS if p not in declared]
+    if missing:
+        raise ValueError(
+            f"{nb_path} does not declare {missing} in its `parameters` cell; a batch notebook "
+            f"takes out_dir (str) and shard (str 'i/n', default '0/1') (see freereg_lib.batch)"
+        )
+    return declared
+
+
+def _check_params(params: dict, declared: set[str], nb_path: Path, grid_path: Path) -> None:
+    unknown = sorted(set(params) - declared)
+    if unknown:
+        raise ValueError(
+            f"{grid_path}: parameter(s) {unknown} are not in the `parameters` cell of {nb_path}; "
+            f"it declares {sorted(declared)}"
+        )
+
+
+# --------------------------------------------------------------------------------------
+# Running.
+
+def unit_dir(run_dir: Path, job: Job, shard: str) -> Path:
+    """Where one execution of ``job`` lives: the job folder, or its ``shard-<i>of<n>`` folder."""
+    i, n = parse_shard(shard)
+    return run_dir / job.id if n == 1 else run_dir / job.id / f"shard-{i}of{n}"
+
+
+def is_done(unit: Path, job: Job, shard: str) -> bool:
+    """True when ``unit`` holds a finished execution of ``job`` with the same parameters."""
+    marker = unit / "done.json"
+    if not marker.is_file():
+        return False
+    done = json.loads(marker.read_text())
+    return done.get("params") == job.params and done.get("shard") == shard
+
+
+def run_job(job: Job, unit: Path, shard: str, kernel: str = "python3", log_output: bool = False) -> str | None:
+    """Execute ``job`` into ``unit``; returns None when it finished, else the error in one line.
+
+    The previous outputs of ``unit`` are cleared first. On failure the executed notebook
+    stays (papermill saves it with the failing cell) and ``error.txt`` holds the error and
+    its traceback; ``done.json`` is written only after the notebook finished and wrote
+    ``pairs.csv``, so an interrupted job simply runs again next time.
+    """
+    import papermill as pm
+
+    out = unit / "out"
+    for stale in ("done.json", "error.txt"):
+        (unit / stale).unlink(missing_ok=True)
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    job_facts = {"notebook": job.notebook, "params": job.params, "shard": shard}
+    (unit / "job.json").write_text(json.dumps(job_facts, indent=1))
+    start = time.time()
+    try:
+        pm.execute_notebook(
+            str(job.path), str(unit / "notebook.ipynb"),
+            parameters={**job.params, "out_dir": str(out.resolve()), "shard": shard},
+            # "python3" is the ipykernel of the running interpreter: jupyter_client swaps the
+            # spec's bare `python` for sys.executable, so jobs use this very environment.
+            kernel_name=kernel, cwd=str(job.path.parent), progress_bar=False,
+            # The notebook's streams go straight to ours; papermill's own log_output would
+            # print stderr a second time through its logger.
+            stdout_file=sys.stdout if log_output else None, stderr_file=sys.stderr if log_output else None,
+        )
+        if not (out / "pairs.csv").is_file():
+            raise RuntimeError(
+                f"the notebook finished without writing {out / 'pairs.csv'} "
+                "(a batch notebook writes its rows with freereg_lib.batch.write_rows(rows, out_dir))"
+            )
+    except Exception as exc:  # any failure is recorded per job so the others go on
+        headline, detail = _describe_failure(exc)
+        (unit / "error.txt").write_text(f"{headline}\n\n{detail}\n")
+        return headline
+    done = {"notebook": job.notebook, "params": job.params, "shard": shard,
+            "seconds": round(time.time() - start, 3), "finished": time.strftime("%Y-%m-%dT%H:%M:%S")}
+    tmp = unit / "done.json.tmp"
+    tmp.write_text(json.dumps(done, indent=1))
+    tmp.replace(unit / "done.json")  # atomic: a marker is never half written
+    return None
+
+
+def _describe_failure(exc: Exception) -> tuple[str, str]:
+    """A one-line headline and the full detail (the notebook's traceback without colours)."""
+    if hasattr(exc, "ename") and hasattr(exc, "traceback"):  # papermill's PapermillExecutionError
+        where = f" (In [{exc.exec_count}])" if getattr(exc, "exec_count", None) is not None else ""
+        detail = re.sub(r"\x1b\[[0-9;]*m", "", "\n".join(exc.traceback))
+        return f"{exc.ename}: {exc.evalue}{where}", detail
+    return f"{type(exc).__name__}: {exc}", "".join(traceback.format_exception(exc))
+
+
+@dataclass
+class Report:
+    """What a ``run`` or ``merge`` did. Ids of finished, skipped and failed (with the error)
+    jobs, and the jobs missing from the table with the reason."""
+
+    run_dir: Path
+    finished: list[str] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+    failed: dict[str, str] = field(default_factory=dict)
+    incomplete: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return not self.failed and not self.incomplete
+
+    def summary(self) -> str:
+        lines = [f"{self.run_dir}: {len(self.finished)} job(s) ran, {len(self.skipped)} already "
+                 f"done (skipped), {len(self.failed)} failed"]
+        lines += [f"  FAILED {j}: {e}\n         see {self.run_dir / j}" for j, e in self.failed.items()]
+        lines += [f"  not in the table: {j}: {why}" for j, why in self.incomplete.items() if j not in self.failed]
+        lines.append(f"results: {self.run_dir / 'results.csv'} and results.md")
+        return "\n".join(lines)
+
+
+def run(grid_path, name: str | None = None, shard: str = "0/1", runs_dir="runs", force: bool = False,
+        log_output: bool = False, kernel: str = "python3") -> Report:
+    """Run every unfinished job of the grid (shard ``shard`` of each), then write the table.
+
+    ``force`` re-runs finished jobs; ``log_output`` streams what the notebooks print to
+    this terminal (text only: a tqdm bar that renders as a Jupyter widget does not stream).
+    """
+    from tqdm.auto import tqdm
+
+    parse_shard(shard)
+    grid = load_grid(grid_path)
+    run_dir = Path(runs_dir) / (name or grid.name)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(grid.path, run_dir / "grid.yaml")
+    report = Report(run_dir)
+    bar = tqdm(grid.jobs, desc=f"{run_dir.name} [{shard}]", unit="job")
+    for job in bar:
+        unit = unit_dir(run_dir, job, shard)
+        if not force and is_done(unit, job, shard):
+            report.skipped.append(job.id)
+            continue
+        bar.set_postfix_str(job.id, refresh=True)
+        error = run_job(job, unit, shard, kernel, log_output)
+        if error is None:
+            report.finished.append(job.id)
+        else:
+            report.failed[job.id] = error
+    bar.close()
+    report.incomplete = write_table(run_dir, grid.jobs)
+    return report
+
+
+def merge(grid_path, name: str | None = None, runs_dir="runs") -> Report:
+    """Write the results table of a run from the finished jobs and complete shard sets."""
+    grid = load_grid(grid_path)
+    run_dir = Path(runs_dir) / (name or grid.name)
+    if not run_dir.is_dir():
+        raise FileNotFoundError(f"no run folder {run_dir}; run the grid (or copy its shards there) first")
+    report = Report(run_dir)
+    report.incomplete = write_table(run_dir, grid.jobs)
+    return report
+
+
+# --------------------------------------------------------------------------------------
+# The results table.
+
+def complete_units(job_dir: Path) -> tuple[list[Path] | None, str]:
+    """The folders whose rows make up a job: the job folder when it finished unsharded,
+    else a complete set of finished shards ``shard-0ofn .. shard-(n-1)ofn`` (smallest n
+    first). Returns ``(None, reason)`` when there is neither."""
+    if (job_dir / "done.json").is_file():
+        return [job_dir], ""
+    by_n: dict[int, dict[int, Path]] = {}
+    for d in job_dir.glob("shard-*of*"):
+        m = re.fullmatch(r"shard-(\d+)of(\d+)", d.name)
+        if m and (d / "done.json").is_file():
+            by_n.setdefault(int(m[2]), {})[int(m[1])] = d
+    for n in sorted(by_n):
+        if set(by_n[n]) == set(range(n)):
+            return [by_n[n][i] for i in range(n)], ""
+    reasons = [f"shards {sorted(d)} of {n} done" for n, d in sorted(by_n.items())]
+    for d in [job_dir, *sorted(job_dir.glob("shard-*of*"))]:
+        if (d / "error.txt").is_file():
+            where = "" if d == job_dir else f"{d.name} "
+            reasons.append(f"{where}failed: " + (d / "error.txt").read_text().splitlines()[0])
+    return None, "; ".join(reasons) or "not run yet"
+
+
+def job_table(job: Job, units: list[Path]):
+    """The summary rows of one job: :func:`pipeline.summarize` over the rows of all its units.
+
+    Rows are ordered by pair name first, so the table is bit-identical however the pairs
+    were sharded. Raises ``ValueError`` when there is no row at all, or when a pair appears
+    in two shards (a notebook that ignores its ``shard`` parameter would otherwise be counted
+    n times). A shard may be empty (more shards than pairs).
+    """
+    from .pipeline import summarize
+
+    rows, seen = [], {}
+    for unit in units:
+        unit_rows = read_rows(unit / "out")
+        for pair in {r.get("pair") for r in unit_rows}:
+            if pair in seen:
+                raise ValueError(
+                    f"pair {pair!r} is in both {seen[pair]} and {unit}: does the notebook pass "
+                    "its `shard` parameter to freereg_lib.batch.shard_items?"
+                )
+            seen[pair] = unit
+        rows += unit_rows
+    if not rows:
+        raise ValueError(f"no per-pair rows in {[str(u / 'out' / 'pairs.csv') for u in units]}")
+    rows.sort(key=lambda r: str(r.get("pair", "")))  # stable: keeps the variant order in a pair
+    cfg = read_config(units[0] / "out") or _config_from_params(job.params)
+    return summarize(rows, cfg)
+
+
+def _config_from_params(params: dict) -> FreeRegConfig:
+    return config_for(params["dataset"]) if "dataset" in params else FreeRegConfig()
+
+
+def results_table(run_dir: Path, jobs: list[Job]):
+    """All jobs' summaries as one DataFrame, and ``{job id: reason}`` for those left out.
+
+    Columns: ``job``, ``notebook``, ``shards``, the jobs' parameters (``param_<name>``
+    when the name is also a summary column, e.g. ``param_n_pairs``), then the summary
+    columns of :func:`pipeline.summarize`, then ``paper_FMR`` .. ``paper_RR`` from Table 1
+    where the job's ``dataset`` / method / solver is there (NaN elsewhere).
+    """
+    import pandas as pd
+
+    parts, left_out = [], {}
+    param_cols = list(dict.fromkeys(k for j in jobs for k in j.params))
+    for job in jobs:
+        units, why = complete_units(run_dir / job.id)
+        if units is None:
+            left_out[job.id] = why
+            continue
+        try:
+            table = job_table(job, units)
+        except (ValueError, FileNotFoundError) as exc:
+            left_out[job.id] = str(exc)
+            continue
+        front = {"job": job.id, "notebook": job.notebook, "shards": len(units)}
+        # A parameter named like a summary column (n_pairs, say) gets a ``param_`` prefix.
+        front.update({(f"param_{k}" if k in table.columns else k): _plain(job.params.get(k)) for k in param_cols})
+        for k, (col, value) in enumerate(front.items()):
+            table.insert(k, col, [value] * len(table))
+        parts.append(_with_paper(table, job.params.get("dataset")))
+    if not parts:
+        return pd.DataFrame(columns=["job", "notebook", "shards", *param_cols, "method", "solver"]), left_out
+    return pd.concat(parts, ignore_index=True), left_out
+
+
+def _plain(v):
+    """Lists and mappings become JSON text so that they fit one CSV cell."""
+    return json.dumps(v) if isinstance(v, (list, dict)) else v
+
+
+def _with_paper(table, dataset):
+    from .paper import table as paper_table
+
+    paper = paper_table("table1_main")
+    name = PAPER_DATASETS.get(str(dataset).lower().replace("-", "_"))
+    for metric in PAPER_METRICS:
+        values = []
+        for method, solver in zip(table["method"], table["solver"]):
+            hit = paper[(paper["dataset"] == name) & (paper["method"] == method)
+                        & (paper["solver"].str.lower() == str(solver).lower())]
+            values.append(float(hit[metric].iloc[0]) if len(hit) else math.nan)
+        table[f"paper_{metric}"] = values
+    return table
+
+
+def write_table(run_dir: Path, jobs: list[Job]) -> dict[str, str]:
+    """Write ``results.csv`` (every column) and ``results.md`` (the columns a reader compares)
+    in ``run_dir``; returns the jobs left out, with the reason."""
+    table, left_out = results_table(run_dir, jobs)
+    table.to_csv(run_dir / "results.csv", index=False)
+    lines = [
+        f"# Results of {run_dir.name}",
+        "",
+        "FMR, IR, RR in %, IN a count per pair, RE in degrees and TE in metres (means over pairs "
+        "with a pose); `paper_*` are the paper's Table 1 (ICLR 2024) for the same dataset, method "
+        "and solver. Only the `real` backend is comparable with the paper. results.csv beside "
+        "this file also has medians and RR over the threshold ladder.",
+    ]
+    if len(table):
+        cols = list(table.columns)
+        front = cols[: cols.index("method")]  # job, notebook, shards and the parameters
+        # Columns with one value over the whole table are stated once, above it.
+        same = [c for c in front if len(table) > 1 and table[c].astype(str).nunique() == 1]
+        lines += ["", *[f"- `{c}`: {table[c].iloc[0]}" for c in same]]
+        shown = [c for c in front if c not in same or c == "job"] + [
+            c for c in (*_SUMMARY_ORDER, *(f"paper_{m}" for m in PAPER_METRICS))
+            if c in table.columns and not (c.startswith("paper_") and table[c].isna().all())]
+        view = table[shown].astype(object).where(table[shown].notna(), None)
+        lines += ["", view.to_markdown(index=False, floatfmt=".1f", missingval="-")]
+    else:
+        lines += ["", "(no finished job yet)"]
+    if left_out:
+        lines += ["", "Not in the table:", ""] + [f"- `{j}`: {why}" for j, why in left_out.items()]
+    (run_dir / "results.md").write_text("\n".join(lines) + "\n")
+    return left_out
+
+
+_SUMMARY_ORDER = ("method", "solver", "n_pairs", "n_failed", "FMR", "IR", "IN", "RR", "RE", "TE")
+
+
+# --------------------------------------------------------------------------------------
+# Command line.
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``python -m freereg_lib.batch``; returns the exit status."""
+    parser = argparse.ArgumentParser(prog="python -m freereg_lib.batch", description=__doc__.split("\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    for cmd, text in (("run", "run the grid's unfinished jobs, then write the results table"),
+                      ("merge", "write the results table from finished jobs and complete shard sets")):
+        p = sub.add_parser(cmd, help=text, description=text)
+        p.add_argument("grid", help="grid YAML file")
+        p.add_argument("--name", help="run name (default: the grid's `name`, else its file stem)")
+        p.add_argument("--runs-dir", default="runs", help="parent folder of runs (default: runs)")
+        if cmd == "run":
+            p.add_argument("--shard", default="0/1", help="run shard i/n of every job's pairs (default 0/1)")
+            p.add_argument("--force", action="store_true", help="re-run jobs that already finished")
+            p.add_argument("--log-output", action="store_true", help="stream the notebooks' output here")
+            p.add_argument("--kernel", default="python3", help="Jupyter kernel name (default python3)")
+    args = parser.parse_args(argv)
+    try:
+        if args.command == "run":
+            report = run(args.grid, args.name, args.shard, args.runs_dir, args.force, args.log_output, args.kernel)
+        else:
+            report = merge(args.grid, args.name, args.runs_dir)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(report.summary())
+    if args.command == "run":
+        return 1 if report.failed else 0
+    return 0 if report.ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

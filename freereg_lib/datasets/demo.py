@@ -1,0 +1,131 @@
+"""The official FreeReg demo: one RGB image against one point cloud.
+
+Layout (the official repository's ``data/demo/``; also the way to bring one's own pair)::
+
+    <root>/source_rgb.png                      the RGB image
+    <root>/target_pc.ply                       the point cloud, in the frame of its depth sensor
+    <root>/intrinsics.json                     optional, the cameras (default: the demo's own)
+    <root>/just_for_eval/rgb2pc.gt.pose.txt    4 x 4 ground truth, RGB camera -> cloud frame
+    <root>/just_for_eval/source_rgb.gtd.png    optional: true depth of the RGB, millimetres
+
+``intrinsics.json`` uses the names of the official ``config/demo.yaml``:
+``{"rgb_intrinsic": 3 x 3, "dpt_intrinsic": 3 x 3, "rgb_size": [W, H], "dpt_size": [W, H],
+"dpt_scale": 1000.0}``; without it the demo's ScanNet cameras are used (RGB 1296 x 968,
+depth 640 x 480). The cloud is projected on a depth camera at the cloud frame's origin
+(the official demo projects with an identity extrinsic). The pose file maps RGB-camera
+points into the cloud frame, so :class:`~freereg_lib.pair.Pair`'s ``T_cam_pc`` is its
+inverse. Without ``source_rgb.gtd.png`` the pair has no ``depth_gt`` (it can be
+registered, not scored).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .. import cameras
+from ..pair import Pair
+from .common import read_depth, read_pose_txt, read_rgb
+from .pairlists import PairEntry, PairSource, require
+
+LAYOUT = __doc__.split("::\n\n", 1)[1].split("\n\n", 1)[0]
+# config/demo.yaml of the official code (ScanNet's cameras); sizes are [W, H] there.
+DEMO_CAMERAS = {
+    "rgb_intrinsic": [[1163.45, 0, 635.626], [0, 1164.79, 481.600], [0, 0, 1]],
+    "dpt_intrinsic": [[574.541, 0, 322.522], [0, 577.584, 238.559], [0, 0, 1]],
+    "rgb_size": [1296, 968],
+    "dpt_size": [640, 480],
+    "dpt_scale": 1000.0,
+}
+
+
+_PLY_TYPES = {"char": "i1", "uchar": "u1", "short": "i2", "ushort": "u2", "int": "i4", "uint": "u4",
+              "float": "f4", "double": "f8", "int8": "i1", "uint8": "u1", "int16": "i2", "uint16": "u2",
+              "int32": "i4", "uint32": "u4", "float32": "f4", "float64": "f8"}
+
+
+def read_ply_points(path: str | Path) -> np.ndarray:
+    """The ``x y z`` of the vertices of a ``.ply`` file (ASCII or binary), ``(N, 3) float64``.
+
+    Read here rather than with Open3D, whose reader returns uninitialised memory instead of
+    an error when a file is malformed. The vertex element must come first (as every point
+    cloud writer puts it); anything unreadable raises ``ValueError`` naming the file.
+    """
+    path = require(path, "point cloud", LAYOUT)
+    data = path.read_bytes()
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise ValueError(f"{path} is not a PLY file (no 'ply' ... 'end_header' header)")
+    header = data[:end].decode("ascii", "replace").splitlines()
+    body = data[data.index(b"\n", end) + 1:]
+    fmt = next((ln.split()[1] for ln in header if ln.startswith("format ")), "")
+    elements = [ln.split() for ln in header if ln.startswith(("element ", "property "))]
+    if not elements or elements[0][:2] != ["element", "vertex"]:
+        raise ValueError(f"{path}: the first element must be 'vertex'")
+    count, props = int(elements[0][2]), []
+    for words in elements[1:]:
+        if words[0] == "element":
+            break
+        if words[1] == "list" or words[1] not in _PLY_TYPES:
+            raise ValueError(f"{path}: unsupported vertex property {' '.join(words)!r}")
+        props.append((words[2], _PLY_TYPES[words[1]]))
+    if not {"x", "y", "z"} <= {n for n, _ in props}:
+        raise ValueError(f"{path}: vertices have no x, y, z properties")
+    try:
+        if fmt == "ascii":
+            table = np.loadtxt(body.decode("ascii").splitlines()[:count], ndmin=2)
+            cols = [n for n, _ in props]
+            xyz = table[:, [cols.index("x"), cols.index("y"), cols.index("z")]]
+        elif fmt in ("binary_little_endian", "binary_big_endian"):
+            order = "<" if fmt == "binary_little_endian" else ">"
+            rec = np.frombuffer(body, dtype=np.dtype([(n, order + t) for n, t in props]), count=count)
+            xyz = np.stack([rec["x"], rec["y"], rec["z"]], axis=1)
+        else:
+            raise ValueError(f"unknown format {fmt!r}")
+    except ValueError as exc:
+        raise ValueError(f"cannot read the vertices of {path}: {exc}") from None
+    if len(xyz) != count or len(xyz) == 0:
+        raise ValueError(f"{path}: expected {count} vertices, read {len(xyz)}")
+    return np.asarray(xyz, dtype=np.float64)
+
+
+def load_demo_pair(root: str | Path) -> Pair:
+    """The demo pair of ``root`` (layout in the module docstring)."""
+    root = require(root, "demo folder", LAYOUT)
+    cams = dict(DEMO_CAMERAS)
+    if (root / "intrinsics.json").is_file():
+        cams.update(json.loads((root / "intrinsics.json").read_text()))
+    K_rgb = np.asarray(cams["rgb_intrinsic"], dtype=np.float64)
+    K_dpt = np.asarray(cams["dpt_intrinsic"], dtype=np.float64)
+    (w_rgb, h_rgb), (w_dpt, h_dpt) = cams["rgb_size"], cams["dpt_size"]
+    image_path = require(root / "source_rgb.png", "RGB image", LAYOUT)
+    image = read_rgb(image_path)
+    if image.shape[:2] != (h_rgb, w_rgb):
+        raise ValueError(f"{image_path} is {image.shape[1]} x {image.shape[0]}, but rgb_size is "
+                         f"{w_rgb} x {h_rgb}; give the image's cameras in {root / 'intrinsics.json'}")
+    T_pc_cam = read_pose_txt(require(root / "just_for_eval" / "rgb2pc.gt.pose.txt", "ground-truth pose", LAYOUT))
+    gtd = root / "just_for_eval" / "source_rgb.gtd.png"
+    return Pair(
+        image=image, K_image=K_rgb, points=read_ply_points(root / "target_pc.ply"), K_depth=K_dpt,
+        depth_size=(int(h_dpt), int(w_dpt)), T_pc_sensor=np.eye(4),
+        T_cam_pc=cameras.invert(T_pc_cam),
+        depth_gt=read_depth(gtd, float(cams["dpt_scale"])) if gtd.is_file() else None,
+        name="demo/source_rgb-target_pc",
+        meta={"dataset": "demo", "outdoor": False},
+    )
+
+
+class FreeRegDemo(PairSource):
+    """The demo as a one-pair dataset, so it runs wherever a dataset name is accepted."""
+
+    dataset = "demo"
+
+    def __init__(self, root: str | Path):
+        self.root = require(root, "demo folder", LAYOUT)
+
+    def pair_list(self) -> list[PairEntry]:
+        return [PairEntry("demo", "source_rgb", "target_pc", float("nan"))]
+
+    def pair(self, entry: PairEntry) -> Pair:
+        return load_demo_pair(self.root)

@@ -1,0 +1,288 @@
+"""The FreeReg chain for one pair, and over many pairs.
+
+``depth_view`` -> ``compute_features`` -> ``match`` -> ``solve`` -> ``evaluate``; each step
+is a function of arrays, so a notebook can stop between any two and draw. ``run_pair``
+strings them together for several method / solver variants sharing one feature
+extraction, and records a failed pair instead of raising, so a batch never loses its
+finished results.
+"""
+from __future__ import annotations
+
+import math
+import traceback
+from dataclasses import dataclass
+from typing import Iterable
+
+import numpy as np
+
+from . import cameras, densify, keypoints, matching, metrics, pose, projection
+from .config import FreeRegConfig
+from .pair import Pair
+
+# Method name -> fusion weight w of the diffusion part (None: the config's fusion_w).
+METHODS = {"FreeReg-D": 1.0, "FreeReg-G": 0.0, "FreeReg": None}
+DEFAULT_VARIANTS = (
+    ("FreeReg-D", "pnp"),
+    ("FreeReg-G", "kabsch"),
+    ("FreeReg", "pnp"),
+    ("FreeReg", "kabsch"),
+)
+
+
+@dataclass
+class DepthView:
+    """The point cloud seen from its depth camera.
+
+    ``raw (H_d, W_d)``: projected depth (0 = empty); ``dense``: after densification;
+    ``index (H_d, W_d) int64``: the point behind each raw pixel (-1 = none); ``ids``:
+    class ids of the dense map (synthetic pairs only, else None).
+    """
+
+    raw: np.ndarray
+    dense: np.ndarray
+    index: np.ndarray
+    ids: np.ndarray | None
+
+
+def depth_view(pair: Pair, cfg: FreeRegConfig) -> DepthView:
+    """Project the pair's cloud on its depth camera, edge-filter and densify it."""
+    if len(pair.points) == 0:
+        raise ValueError(f"pair {pair.name}: the point cloud is empty")
+    raw, index = projection.project_to_depth(
+        pair.points, pair.K_depth, cameras.invert(pair.T_pc_sensor), pair.depth_size,
+        cfg.depth_min, cfg.depth_max,
+    )
+    if cfg.edge_filter_m > 0:
+        raw = projection.edge_filter(raw, cfg.edge_filter_m)
+        index[raw == 0] = -1
+    if not np.any(raw > 0):
+        raise ValueError(f"pair {pair.name}: no point of the cloud projects into the depth view")
+    dense = densify.densify(raw, cfg.densify, max_depth=max(cfg.depth_max, 1.0) * 1.5)
+    dense[(dense <= cfg.depth_min) | (dense >= cfg.depth_max)] = 0.0
+    ids = None
+    if pair.point_ids is not None:
+        ids = _nearest_fill(np.where(index >= 0, pair.point_ids[np.maximum(index, 0)], 0), index >= 0)
+        ids[dense == 0] = 0
+    return DepthView(raw, dense, index, ids)
+
+
+def _nearest_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """Each pixel takes the value of its nearest ``known`` pixel."""
+    from scipy import ndimage
+
+    if not known.any():
+        return np.zeros_like(values)
+    _, (iy, ix) = ndimage.distance_transform_edt(~known, return_indices=True)
+    return values[iy, ix]
+
+
+@dataclass
+class PairFeatures:
+    """Keypoints and their features on both sides of a pair.
+
+    Image side: ``uv_image (N, 2)``, monocular-depth points ``pts_image (N, 3)`` in the
+    camera frame (NaN where the depth is missing), ``diff_image (N, Cd)``,
+    ``geo_image (N, Cg)``. Depth side: ``uv_depth (M, 2)`` on the depth map, their cloud
+    points ``pts_depth (M, 3)`` in the ``pc`` frame, ``diff_depth``, ``geo_depth``.
+    Feature arrays are None when that kind was not computed.
+    """
+
+    uv_image: np.ndarray
+    pts_image: np.ndarray
+    uv_depth: np.ndarray
+    pts_depth: np.ndarray
+    diff_image: np.ndarray | None
+    diff_depth: np.ndarray | None
+    geo_image: np.ndarray | None
+    geo_depth: np.ndarray | None
+    mono_depth: np.ndarray
+    view: DepthView
+
+
+def compute_features(
+    pair: Pair, backend, cfg: FreeRegConfig, diffusion: bool = True, geometric: bool = True
+) -> PairFeatures:
+    """Everything the matcher needs for ``pair`` (see :class:`PairFeatures`)."""
+    from . import features, geometric as geo
+
+    view = depth_view(pair, cfg)
+    uv_img = keypoints.grid_keypoints(pair.image_size, cfg.keypoint_grid)
+    uv_dep = keypoints.grid_keypoints(pair.depth_size, cfg.keypoint_grid)
+    z_dep = cameras.nearest_sample(view.dense, uv_dep)
+    keep = z_dep > 0
+    uv_dep, z_dep = uv_dep[keep], z_dep[keep]
+    if len(uv_dep) == 0:
+        raise ValueError(f"pair {pair.name}: no depth keypoint has a valid depth")
+    pts_dep = cameras.transform(pair.T_pc_sensor, cameras.lift(uv_dep, z_dep, pair.K_depth))
+
+    mono = np.asarray(backend.mono_depth(pair.image, depth_gt=pair.depth_gt), dtype=np.float64)
+    z_img = cameras.nearest_sample(mono, uv_img)
+    z_img = np.where((z_img > cfg.depth_min) & (z_img < cfg.depth_max), z_img, np.nan)
+    pts_img = cameras.lift(uv_img, z_img, pair.K_image)
+
+    diff_img = diff_dep = geo_img = geo_dep = None
+    if diffusion:
+        maps_img = backend.diffusion_rgb(pair.image, ids=pair.image_ids)
+        maps_dep = backend.diffusion_depth(view.dense, ids=view.ids)
+        f_img, f_dep = features.pca_reduce(maps_img, maps_dep, cfg.layers, cfg.pca_dim)
+        diff_img = features.sample_features(f_img, uv_img, pair.image_size)
+        diff_dep = features.sample_features(f_dep, uv_dep, pair.depth_size)
+    if geometric:
+        cloud_img, _ = cameras.backproject(np.where(mono < cfg.depth_max, mono, 0), pair.K_image)
+        # Normals face each cloud's own viewpoint, so FPFH signs agree across the two sides.
+        down_img, feats_img = geo.geometric_features(cloud_img, cfg)
+        down_pc, feats_pc = geo.geometric_features(pair.points, cfg, camera_location=pair.T_pc_sensor[:3, 3])
+        good = np.isfinite(pts_img).all(1)
+        geo_img = np.zeros((len(uv_img), feats_img.shape[1]))
+        geo_img[good] = geo.pixel_features(pts_img[good], down_img, feats_img, cfg.tau_g)
+        geo_dep = geo.pixel_features(pts_dep, down_pc, feats_pc, cfg.tau_g)
+    return PairFeatures(uv_img, pts_img, uv_dep, pts_dep, diff_img, diff_dep, geo_img, geo_dep, mono, view)
+
+
+@dataclass
+class Matches:
+    """Mutual nearest neighbours: rows ``idx_image`` of the image side, ``idx_depth`` of the depth side."""
+
+    idx_image: np.ndarray
+    idx_depth: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.idx_image)
+
+
+def descriptors(feats: PairFeatures, w: float) -> tuple[np.ndarray, np.ndarray]:
+    """Image-side and depth-side descriptors for fusion weight ``w`` (1: diffusion only, 0: geometric only)."""
+    from . import features
+
+    if w >= 1.0 or (w > 0 and feats.geo_image is None):
+        _need(feats.diff_image, "diffusion")
+        return features.l2_normalize(feats.diff_image), features.l2_normalize(feats.diff_depth)
+    if w <= 0.0:
+        _need(feats.geo_image, "geometric")
+        return features.l2_normalize(feats.geo_image), features.l2_normalize(feats.geo_depth)
+    _need(feats.diff_image, "diffusion")
+    return (
+        features.fuse(feats.diff_image, feats.geo_image, w),
+        features.fuse(feats.diff_depth, feats.geo_depth, w),
+    )
+
+
+def _need(arr, kind: str) -> None:
+    if arr is None:
+        raise ValueError(f"{kind} features were not computed for this pair; pass {kind}=True to compute_features")
+
+
+def match(feats: PairFeatures, w: float) -> Matches:
+    """Mutual nearest neighbours of the fused descriptors."""
+    d_img, d_dep = descriptors(feats, w)
+    ia, ib = matching.mutual_nn(d_img, d_dep)
+    return Matches(ia, ib)
+
+
+def solve(pair: Pair, feats: PairFeatures, m: Matches, cfg: FreeRegConfig, solver: str) -> pose.PoseResult:
+    """Estimate ``T_cam_pc`` from matches with ``solver`` = ``"kabsch"`` or ``"pnp"``."""
+    pts_pc = feats.pts_depth[m.idx_depth]
+    if solver == "kabsch":
+        return pose.kabsch_ransac(
+            feats.pts_image[m.idx_image], pts_pc, cfg.kabsch_inlier_m, cfg.ransac_iters,
+            cfg.ransac_n, cfg.kabsch_with_scale, cfg.min_matches_kabsch, cfg.seed,
+        )
+    if solver == "pnp":
+        return pose.pnp_ransac(
+            feats.uv_image[m.idx_image], pts_pc, pair.K_image, cfg.pnp_reproj_px,
+            cfg.ransac_iters, cfg.min_matches_pnp,
+        )
+    raise ValueError(f"unknown solver {solver!r}; expected 'kabsch' or 'pnp'")
+
+
+def evaluate(pair: Pair, feats: PairFeatures, m: Matches, result: pose.PoseResult, cfg: FreeRegConfig) -> dict:
+    """Per-pair metrics: ``IR`` (fraction), ``IN``, ``RE``, ``TE``, ``registered``."""
+    if pair.depth_gt is None:
+        raise ValueError(f"pair {pair.name} has no ground-truth image depth; matches cannot be scored")
+    correct, evaluable = metrics.correct_matches(
+        feats.uv_image[m.idx_image], feats.pts_depth[m.idx_depth], pair.depth_gt, pair.K_image,
+        pair.T_cam_pc, cfg.tau_c, (cfg.depth_min, cfg.depth_max),
+    )
+    ir, inn = metrics.inlier_stats(correct, evaluable)
+    re, te = metrics.pose_errors(result.T_cam_pc, pair.T_cam_pc) if result.success else (math.nan, math.nan)
+    return {
+        "IR": ir, "IN": inn, "RE": re, "TE": te,
+        "registered": metrics.registered(re, te, cfg.rr_rot_deg, cfg.rr_trans_m),
+    }
+
+
+def _weight(method: str, cfg: FreeRegConfig) -> float:
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; expected one of {list(METHODS)}")
+    w = METHODS[method]
+    return cfg.fusion_w if w is None else w
+
+
+def run_pair(
+    pair: Pair, backend, cfg: FreeRegConfig, variants: Iterable[tuple[str, str]] = DEFAULT_VARIANTS
+) -> list[dict]:
+    """One row per (method, solver) variant; features are extracted once.
+
+    Any exception becomes a row with ``error`` set and zero IR / IN, no pose, not registered,
+    the way the paper's RR counts a failure.
+    """
+    variants = list(variants)
+    ws = [_weight(mth, cfg) for mth, _ in variants]
+    rows = []
+    try:
+        feats = compute_features(pair, backend, cfg, diffusion=any(w > 0 for w in ws), geometric=any(w < 1 for w in ws))
+    except Exception as exc:  # recorded per pair so a batch goes on
+        reason = _describe(exc)
+        return [_row(pair, mth, sol, w, 0, None, reason) for (mth, sol), w in zip(variants, ws)]
+    matches_by_w: dict[float, Matches] = {}
+    for (mth, sol), w in zip(variants, ws):
+        try:
+            if w not in matches_by_w:
+                matches_by_w[w] = match(feats, w)
+            m = matches_by_w[w]
+            res = solve(pair, feats, m, cfg, sol)
+            scores = evaluate(pair, feats, m, res, cfg)
+            rows.append(_row(pair, mth, sol, w, len(m), res, "" if res.success else res.reason, scores))
+        except Exception as exc:
+            rows.append(_row(pair, mth, sol, w, 0, None, _describe(exc)))
+    return rows
+
+
+def _describe(exc: Exception) -> str:
+    frame = traceback.extract_tb(exc.__traceback__)[-1] if exc.__traceback__ else None
+    where = f" ({frame.filename.rsplit('/', 1)[-1]}:{frame.lineno})" if frame else ""
+    return f"{type(exc).__name__}: {exc}{where}"
+
+
+def _row(pair, method, solver, w, n_matches, res, error, scores=None) -> dict:
+    scores = scores or {"IR": 0.0, "IN": 0, "RE": math.nan, "TE": math.nan, "registered": False}
+    return {
+        "pair": pair.name, "method": method, "solver": solver, "w": w, "n_matches": n_matches,
+        **scores,
+        "n_inliers": res.n_inliers if res is not None else 0,
+        "scale": res.scale if res is not None else math.nan,
+        "error": error,
+    }
+
+
+def run_pairs(pairs: Iterable[Pair], backend, cfg: FreeRegConfig, variants=DEFAULT_VARIANTS, progress: bool = True) -> list[dict]:
+    """``run_pair`` over ``pairs`` with a progress bar; returns all rows."""
+    from tqdm.auto import tqdm
+
+    rows: list[dict] = []
+    for pair in tqdm(pairs, desc="pairs", disable=not progress):
+        rows.extend(run_pair(pair, backend, cfg, variants))
+    return rows
+
+
+def summarize(rows: list[dict], cfg: FreeRegConfig):
+    """A table (pandas DataFrame) with one row per (method, solver): FMR, IR, IN, RR, RE, TE, ladder."""
+    import pandas as pd
+
+    out = []
+    keys = list(dict.fromkeys((r["method"], r["solver"]) for r in rows))
+    for mth, sol in keys:
+        sub = [r for r in rows if r["method"] == mth and r["solver"] == sol]
+        agg = metrics.aggregate(sub, cfg.rr_rot_deg, cfg.rr_trans_m, cfg.fmr_ratio, cfg.rr_ladder)
+        out.append({"method": mth, "solver": sol, **agg})
+    return pd.DataFrame(out)

@@ -1,0 +1,366 @@
+"""Backends: tiny diffusion path (layers, schedule, guidance, hooks), SD v1.5 shapes (Table 2),
+tiny ZoeDepth, device handling, missing weights, and the pure helpers."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from freereg_lib.backends import (  # noqa: E402
+    MissingWeightsError,
+    depth_hint,
+    depth_to_uint8,
+    feature_timestep,
+    get_backend,
+    n_guided_steps,
+    official_resize_hw,
+)
+from freereg_lib.backends import weights as WTS  # noqa: E402
+from freereg_lib.backends.diffusion import (  # noqa: E402
+    SD15_UNET_CONFIG,
+    DecoderTap,
+    StopForward,
+    guidance,
+)
+from freereg_lib.config import FreeRegConfig  # noqa: E402
+
+TINY_HW = (128, 192)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    # The tiny models are overhead-bound; one thread avoids OpenMP spinning on a busy machine.
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    return get_backend("tiny", FreeRegConfig(), device="cpu", resize_hw=TINY_HW)
+
+
+@pytest.fixture(scope="module")
+def tiny_small():
+    return get_backend("tiny", FreeRegConfig(), device="cpu", resize_hw=(64, 128))
+
+
+@pytest.fixture(scope="module")
+def image():
+    rng = np.random.default_rng(1)
+    return (rng.random((60, 80, 3)) * 255).astype(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def depth():
+    v, u = np.mgrid[0:60, 0:80]
+    d = 1.0 + 0.03 * u + 0.01 * v
+    d[:5, :7] = 0.0
+    return d
+
+
+def expected_index(t_hat, steps):
+    # The official rule, written out independently of the library.
+    return round((1000 - t_hat) / (1000 / steps))
+
+
+class CallCounter:
+    """Wrap ``module.forward`` and record the timestep of every call."""
+
+    def __init__(self, module):
+        self.module = module
+        self.orig = module.forward
+        self.timesteps: list[int] = []
+
+        def wrapped(sample, timestep, *a, **kw):
+            self.timesteps.append(int(torch.as_tensor(timestep).reshape(-1)[0]))
+            return self.orig(sample, timestep, *a, **kw)
+
+        module.forward = wrapped
+
+    def restore(self):
+        del self.module.forward
+
+    @property
+    def n(self):
+        return len(self.timesteps)
+
+
+# ---------------------------------------------------------------------------------------
+# Pure helpers.
+
+def test_guidance_formula_on_known_tensors():
+    c = torch.tensor([1.0, 2.0, -3.0])
+    u = torch.tensor([0.5, -1.0, 1.0])
+    out = guidance(c, u, 4.0)
+    assert torch.allclose(out, torch.tensor([3.0, 14.0, -19.0]))
+    # The official form eps_u + s (eps_c - eps_u) with s = w + 1.
+    assert torch.allclose(out, u + 5.0 * (c - u))
+    assert np.allclose(guidance(np.array([2.0]), np.array([2.0]), 7.0), [2.0])  # c == u -> c
+    assert torch.equal(guidance(c, u, 0.0), c)  # w = 0: no guidance
+
+
+def test_step_rule_and_feature_timestep():
+    assert n_guided_steps(150, 20) == 17 == expected_index(150, 20)
+    assert n_guided_steps(150, 5) == 4 == expected_index(150, 5)
+    assert feature_timestep(150, 20) == 150
+    assert feature_timestep(150, 5) == 200  # the official code forces (steps - index) * 1000/steps
+    for steps in (1, 3, 10, 25, 50):
+        assert n_guided_steps(150, steps) == expected_index(150, steps)
+
+
+def test_official_resize_rule():
+    assert official_resize_hw(480, 640) == (512, 704)
+    assert official_resize_hw(225, 1242) == (512, 1280)  # KITTI, capped at 2.5 x
+    assert official_resize_hw(968, 1296) == (512, 704)
+
+
+def test_depth_normalisation_matches_official_formula():
+    rng = np.random.default_rng(0)
+    d = rng.uniform(0.5, 6.0, (40, 50))
+    d[0, :10] = 0.0
+    valid = d > 0
+    d2, d85 = np.percentile(d[valid], [2, 85])
+    expect = np.clip((1 - (d - d2) / (d85 - d2)) * 255, 0, 255).astype(np.uint8)
+    got = depth_to_uint8(d)
+    assert got.dtype == np.uint8
+    assert np.array_equal(got[valid], expect[valid])
+    assert np.all(got[~valid] == 0)
+    assert got[valid][d[valid] <= d2].min() == 255 or np.all(d[valid] > d2)
+    assert np.all(got[d >= d85] == 0)
+    hint = depth_hint(d, (64, 128))
+    assert hint.shape == (3, 64, 128) and hint.dtype == np.float32
+    assert 0.0 <= hint.min() and hint.max() <= 1.0
+    assert np.array_equal(hint[0], hint[2])
+
+
+# ---------------------------------------------------------------------------------------
+# Tiny diffusion.
+
+def test_tiny_rgb_nine_layers_at_paper_strides(tiny, image):
+    layers = tiny.diffusion_rgb(image)
+    h, w = TINY_HW
+    assert len(layers) == 9
+    sizes = [tuple(x.shape[1:]) for x in layers]
+    assert sizes == [(h // 64, w // 64)] * 3 + [(h // 32, w // 32)] * 3 + [(h // 16, w // 16)] * 3
+    # Channels mirror SD v1.5's pattern (1280 x 7, 640 x 2) at the tiny widths (64, 32).
+    assert [x.shape[0] for x in layers] == [64] * 7 + [32] * 2
+    assert all(x.dtype == np.float32 and np.isfinite(x).all() for x in layers)
+    again = tiny.diffusion_rgb(image)
+    assert all(np.array_equal(a, b) for a, b in zip(layers, again))  # deterministic
+    other = tiny.diffusion_rgb(255 - image)
+    assert not np.allclose(layers[6], other[6])
+
+
+def test_tiny_depth_call_count_at_paper_defaults(tiny_small, depth):
+    diff = tiny_small.diffusion
+    unet, cn = CallCounter(diff.unet), CallCounter(diff.controlnet)
+    try:
+        layers = tiny_small.diffusion_depth(depth)
+    finally:
+        unet.restore()
+        cn.restore()
+    n = expected_index(150, 20)
+    assert n == 17
+    assert unet.n == 2 * n + 1  # 17 guided steps x (cond + uncond) + 1 feature pass
+    assert cn.n == 2 * n + 1  # the depth hint conditions both branches and the feature pass
+    # DDIM timesteps 951, 901, ..., 151 (each twice), then the feature pass at t_hat = 150.
+    guided = sorted(set(unet.timesteps[:-1]), reverse=True)
+    assert guided == [951 - 50 * i for i in range(n)]
+    assert unet.timesteps[-1] == 150
+    assert [tuple(x.shape[1:]) for x in layers][::3] == [(1, 2), (2, 4), (4, 8)]
+
+
+def test_tiny_depth_fewer_steps_fewer_calls(depth):
+    cfg = FreeRegConfig().override(ddim_steps=5)
+    be = get_backend("tiny", cfg, device="cpu", resize_hw=(64, 128))
+    diff = be.diffusion
+    unet = CallCounter(diff.unet)
+    try:
+        layers = be.diffusion_depth(depth)
+    finally:
+        unet.restore()
+    n = expected_index(cfg.t_hat, 5)
+    assert n == 4
+    assert unet.n == 2 * n + 1 == 9
+    assert unet.timesteps[-1] == 200
+    assert [tuple(x.shape[1:]) for x in layers][::3] == [(1, 2), (2, 4), (4, 8)]
+
+
+def test_text_embeddings_computed_once(tiny, image):
+    diff = tiny.diffusion
+    calls = []
+    orig = diff.text_encoder.forward
+
+    def wrapped(*a, **kw):
+        calls.append(1)
+        return orig(*a, **kw)
+
+    diff._text_cache.clear()
+    diff.text_encoder.forward = wrapped
+    try:
+        tiny.diffusion_rgb(image)
+        tiny.diffusion_rgb(image)
+        cond, uncond = diff.text_embeddings()
+    finally:
+        del diff.text_encoder.forward
+    assert len(calls) == 2  # the conditional and the negative prompt, once each
+    assert diff.cond_text == FreeRegConfig().prompt + ", best quality"
+    assert cond.shape == uncond.shape == (1, 77, 32)
+
+
+def test_depth_hint_changes_features(depth):
+    cfg = FreeRegConfig().override(ddim_steps=2)
+    be = get_backend("tiny", cfg, device="cpu", resize_hw=(64, 128))
+    a = be.diffusion_depth(depth)
+    b = be.diffusion_depth(depth[:, ::-1].copy())
+    c = be.diffusion_depth(depth)
+    assert all(np.array_equal(x, y) for x, y in zip(a, c))
+    assert not np.allclose(a[0], b[0])
+
+
+def test_layer0_includes_controlnet_mid_residual(tiny_small):
+    """Layer 0 is the INPUT of up_blocks[0]: the mid-block output plus ControlNet's residual."""
+    diff = tiny_small.diffusion
+    unet = diff.unet
+    z = torch.randn(1, 4, 8, 16, generator=torch.Generator().manual_seed(0))
+    emb = torch.randn(1, 77, 32, generator=torch.Generator().manual_seed(1))
+    t = torch.tensor([150])
+    with torch.no_grad():
+        down, mid = diff.controlnet(z, t, encoder_hidden_states=emb,
+                                    controlnet_cond=torch.rand(1, 3, 64, 128), return_dict=False)
+    store = {}
+    hooks = [
+        unet.mid_block.register_forward_hook(lambda m, a, o: store.__setitem__("mid", o)),
+        unet.up_blocks[1].register_forward_hook(lambda m, a, o: store.__setitem__("up1", o)),
+        unet.up_blocks[2].attentions[1].register_forward_hook(
+            lambda m, a, o: store.__setitem__("up2a1", o[0])),
+    ]
+    try:
+        with torch.no_grad(), DecoderTap(unet) as tap:
+            try:
+                unet(z, t, encoder_hidden_states=emb, down_block_additional_residuals=down,
+                     mid_block_additional_residual=mid)
+            except StopForward:
+                pass
+    finally:
+        for h in hooks:
+            h.remove()
+    layers = tap.layers()
+    assert mid.abs().max() > 0
+    assert np.allclose(layers[0], (store["mid"] + mid)[0].numpy(), atol=1e-6)
+    assert not np.allclose(layers[0], store["mid"][0].numpy())
+    assert np.allclose(layers[6], store["up1"][0].numpy())
+    assert np.allclose(layers[8], store["up2a1"][0].numpy())
+
+
+def test_sd15_full_config_layer_shapes_table2():
+    """Table 2 with the full SD v1.5 UNet + depth ControlNet configs (meta device: shapes
+    only, no memory, no weights)."""
+    from diffusers import ControlNetModel, UNet2DConditionModel
+
+    with torch.device("meta"):
+        unet = UNet2DConditionModel(**SD15_UNET_CONFIG)
+        cn_cfg = {k: v for k, v in SD15_UNET_CONFIG.items()
+                  if k not in ("out_channels", "up_block_types", "sample_size")}
+        cn = ControlNetModel(**cn_cfg)
+    assert sum(p.numel() for p in unet.parameters()) == 859_520_964  # SD v1.5's UNet
+    for (H, W) in [(512, 704), (512, 1280)]:
+        z = torch.empty(1, 4, H // 8, W // 8, device="meta")
+        emb = torch.empty(1, 77, 768, device="meta")
+        hint = torch.empty(1, 3, H, W, device="meta")
+        t = torch.tensor([150], device="meta")
+        with torch.no_grad():
+            down, mid = cn(z, t, encoder_hidden_states=emb, controlnet_cond=hint,
+                           return_dict=False)
+            with DecoderTap(unet) as tap:
+                try:
+                    unet(z, t, encoder_hidden_states=emb, down_block_additional_residuals=down,
+                         mid_block_additional_residual=mid)
+                except StopForward:
+                    pass
+        shapes = [tuple(tap.maps[i].shape[1:]) for i in range(9)]
+        a, b, c = (H // 64, W // 64), (H // 32, W // 32), (H // 16, W // 16)
+        assert shapes == [(1280, *a)] * 3 + [(1280, *b)] * 3 + [(1280, *c)] + [(640, *c)] * 2
+        assert len(down) == 12  # + the mid residual = the 13 ControlNet residuals
+    # 512 x 704: 1280x8x11, 1280x16x22, 1280x32x44, 640x32x44 as in the paper.
+
+
+# ---------------------------------------------------------------------------------------
+# ZoeDepth, devices, weights.
+
+def test_tiny_zoedepth_returns_input_size(tiny):
+    rng = np.random.default_rng(3)
+    for H, W in [(48, 64), (75, 50)]:
+        img = (rng.random((H, W, 3)) * 255).astype(np.uint8)
+        d = tiny.mono_depth(img)
+        assert d.shape == (H, W) and d.dtype == np.float64
+        assert np.isfinite(d).all() and (d >= 0).all() and d.max() > 0
+
+
+def test_cuda_request_without_cuda_is_a_clear_error():
+    if torch.cuda.is_available():
+        pytest.skip("CUDA present")
+    with pytest.raises(RuntimeError, match="CUDA is not available"):
+        get_backend("tiny", FreeRegConfig(), device="cuda")
+
+
+def test_device_defaults():
+    from freereg_lib.backends.torch_backends import resolve_device
+
+    dev, dt = resolve_device("cpu")
+    assert dev.type == "cpu" and dt == torch.float32
+    if torch.cuda.is_available():
+        dev, dt = resolve_device(None)
+        assert dev.type == "cuda" and dt == torch.float16
+
+
+def test_unknown_backend_name():
+    with pytest.raises(ValueError, match="unknown backend"):
+        get_backend("nope", FreeRegConfig())
+
+
+@pytest.fixture()
+def empty_hf_cache(tmp_path, monkeypatch):
+    import huggingface_hub.constants as C
+
+    monkeypatch.setattr(C, "HF_HUB_CACHE", str(tmp_path / "hf_cache"))
+    monkeypatch.delenv("FREEREG_WEIGHTS", raising=False)
+    return tmp_path
+
+
+def test_missing_weights_message(empty_hf_cache):
+    wdir = empty_hf_cache / "weights"
+    wdir.mkdir()
+    with pytest.raises(MissingWeightsError) as info:
+        get_backend("real", FreeRegConfig(), device="cpu", weights_dir=str(wdir))
+    msg = str(info.value)
+    for mid in (WTS.SD15_ID, WTS.CONTROLNET_DEPTH_ID, WTS.ZOEDEPTH_INDOOR_ID):
+        assert mid in msg
+        assert f"huggingface-cli download {mid}" in msg
+    assert str(wdir) in msg and "hf_cache" in msg
+    assert 'backend="stub"' in msg
+    assert set(info.value.model_ids) == {WTS.SD15_ID, WTS.CONTROLNET_DEPTH_ID,
+                                         WTS.ZOEDEPTH_INDOOR_ID}
+    assert isinstance(info.value, FileNotFoundError)
+
+
+def test_missing_weights_outdoor_and_partial(empty_hf_cache):
+    from freereg_lib.config import config_for
+
+    wdir = empty_hf_cache / "weights"
+    (wdir / "zoedepth-nyu-kitti").mkdir(parents=True)
+    (wdir / "zoedepth-nyu-kitti" / "config.json").write_text("{}")
+    # Only ZoeDepth is needed and present: no error at construction.
+    be = get_backend("real", config_for("kitti"), device="cpu", weights_dir=str(wdir),
+                     load=("mono",))
+    assert be.paths["zoe"] == str(wdir / "zoedepth-nyu-kitti")
+    with pytest.raises(MissingWeightsError) as info:
+        get_backend("real", config_for("kitti"), device="cpu", weights_dir=str(wdir))
+    assert WTS.ZOEDEPTH_OUTDOOR_ID not in info.value.model_ids
+    assert WTS.CONTROLNET_DEPTH_ID in info.value.model_ids
+    # A broken folder fails on loading with the same error class.
+    with pytest.raises(MissingWeightsError, match="Loading failed"):
+        be.mono_depth(np.zeros((8, 8, 3), np.uint8))
