@@ -47,8 +47,8 @@ class CachedBackend:
     """``backend`` with its three outputs memoised on disk.
 
     Args:
-        backend: any object with ``name``, ``diffusion_rgb(image, ids=None)``,
-            ``diffusion_depth(depth, ids=None)`` (lists of ``(C, h, w)`` arrays) and
+        backend: any object with ``name``, ``diffusion_rgb(image, ids=None[, xyz])``,
+            ``diffusion_depth(depth, ids=None[, xyz])`` (lists of ``(C, h, w)`` arrays) and
             ``mono_depth(image, depth_gt=None)`` (an ``(H, W)`` array).
         cache_dir: the cache's root folder (created when missing).
         params: everything besides the inputs that changes the outputs; usually
@@ -75,15 +75,19 @@ class CachedBackend:
             raise AttributeError(attr)
         return getattr(self.backend, attr)
 
-    def diffusion_rgb(self, image: np.ndarray, ids: np.ndarray | None = None) -> list[np.ndarray]:
+    def diffusion_rgb(self, image: np.ndarray, ids: np.ndarray | None = None,
+                      xyz: np.ndarray | None = None) -> list[np.ndarray]:
         """Decoder layers of an RGB image ``(H, W, 3) uint8`` (see the backend)."""
-        return self._cached("diffusion_rgb", (image, ids),
-                            lambda: self.backend.diffusion_rgb(image, ids=ids), self.half)
+        hints = {"ids": ids} if xyz is None else {"ids": ids, "xyz": xyz}
+        return self._cached("diffusion_rgb", (image, ids, xyz),
+                            lambda: self.backend.diffusion_rgb(image, **hints), self.half)
 
-    def diffusion_depth(self, depth: np.ndarray, ids: np.ndarray | None = None) -> list[np.ndarray]:
+    def diffusion_depth(self, depth: np.ndarray, ids: np.ndarray | None = None,
+                        xyz: np.ndarray | None = None) -> list[np.ndarray]:
         """Decoder layers of a depth map ``(H, W)`` in metres (see the backend)."""
-        return self._cached("diffusion_depth", (depth, ids),
-                            lambda: self.backend.diffusion_depth(depth, ids=ids), self.half)
+        hints = {"ids": ids} if xyz is None else {"ids": ids, "xyz": xyz}
+        return self._cached("diffusion_depth", (depth, ids, xyz),
+                            lambda: self.backend.diffusion_depth(depth, **hints), self.half)
 
     def mono_depth(self, image: np.ndarray, depth_gt: np.ndarray | None = None) -> np.ndarray:
         """Metric depth ``(H, W)`` of an RGB image (see the backend); never stored as float16."""

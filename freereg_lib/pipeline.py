@@ -76,6 +76,35 @@ def _nearest_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     return values[iy, ix]
 
 
+def scene_hints(pair: Pair, view: DepthView) -> tuple[dict, dict]:
+    """What a synthetic scene knows about each pixel, for the stub backend.
+
+    Image side: class ids and the true scene point of every pixel (from the true depth and
+    pose, which only a synthetic scene hands out). Depth side: the class ids and the scene
+    points of the densified depth map (no ground truth needed). Empty dicts for a pair that
+    is not synthetic.
+    """
+    if pair.image_ids is None or pair.depth_gt is None:
+        return {}, {}
+    pts_img, uv_img = cameras.backproject(pair.depth_gt, pair.K_image)
+    xyz_img = np.full(pair.depth_gt.shape + (3,), np.nan)
+    xyz_img[uv_img[:, 1].astype(int), uv_img[:, 0].astype(int)] = cameras.transform(cameras.invert(pair.T_cam_pc), pts_img)
+    pts_dep, uv_dep = cameras.backproject(view.dense, pair.K_depth)
+    xyz_dep = np.full(view.dense.shape + (3,), np.nan)
+    xyz_dep[uv_dep[:, 1].astype(int), uv_dep[:, 0].astype(int)] = cameras.transform(pair.T_pc_sensor, pts_dep)
+    return {"ids": pair.image_ids, "xyz": xyz_img}, {"ids": view.ids, "xyz": xyz_dep}
+
+
+def diffusion_maps(pair: Pair, view: DepthView, backend) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The nine decoder layers of the image and of the densified depth map.
+
+    Backends that ask for scene hints (the stub) get :func:`scene_hints`; real ones see
+    only the image and the depth map.
+    """
+    hint_img, hint_dep = scene_hints(pair, view) if getattr(backend, "uses_scene_hints", False) else ({}, {})
+    return backend.diffusion_rgb(pair.image, **hint_img), backend.diffusion_depth(view.dense, **hint_dep)
+
+
 @dataclass
 class PairFeatures:
     """Keypoints and their features on both sides of a pair.
@@ -122,8 +151,7 @@ def compute_features(
 
     diff_img = diff_dep = geo_img = geo_dep = None
     if diffusion:
-        maps_img = backend.diffusion_rgb(pair.image, ids=pair.image_ids)
-        maps_dep = backend.diffusion_depth(view.dense, ids=view.ids)
+        maps_img, maps_dep = diffusion_maps(pair, view, backend)
         f_img, f_dep = features.pca_reduce(maps_img, maps_dep, cfg.layers, cfg.pca_dim)
         diff_img = features.sample_features(f_img, uv_img, pair.image_size)
         diff_dep = features.sample_features(f_dep, uv_dep, pair.depth_size)

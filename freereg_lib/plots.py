@@ -504,9 +504,10 @@ def metric_bars(table, metrics: list[str], label_col: str, title: str, ours_labe
         ax.set_ylabel(m)
         ax.set_title(m)
         ax.grid(axis="y", alpha=0.3)
-    axes[0][0].legend(fontsize=8)
+    handles, names = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, names, loc="lower center", ncol=2, fontsize=8, frameon=False)
     fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.07, 1, 1))  # room for the legend under the panels
     return fig
 
 

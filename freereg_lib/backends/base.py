@@ -66,11 +66,13 @@ class Backend:
         """``(h, w)`` of the nine layers for this backend's ``resize_hw``."""
         return layer_sizes(self.resize_hw)
 
-    def diffusion_rgb(self, image: np.ndarray, ids: np.ndarray | None = None) -> list[np.ndarray]:
+    def diffusion_rgb(self, image: np.ndarray, ids: np.ndarray | None = None,
+                      xyz: np.ndarray | None = None) -> list[np.ndarray]:
         """Nine decoder layers ``(C, h, w) float32`` of an RGB image ``(H, W, 3) uint8``."""
         raise NotImplementedError
 
-    def diffusion_depth(self, depth: np.ndarray, ids: np.ndarray | None = None) -> list[np.ndarray]:
+    def diffusion_depth(self, depth: np.ndarray, ids: np.ndarray | None = None,
+                        xyz: np.ndarray | None = None) -> list[np.ndarray]:
         """Nine decoder layers of a (densified) depth map ``(H, W)`` in metres, 0 = none."""
         raise NotImplementedError
 

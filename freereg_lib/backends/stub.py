@@ -70,6 +70,10 @@ class StubBackend(Backend):
         channels: channels of layers (0-2, 3-5, 6, 7-8).
         context: Gaussian sigmas (in cells of each layer) of the context copies; ``(0,)``
             = the plain pooled class fractions.
+        position_share: share of the signal's energy that comes from the scene position
+            ``xyz`` when it is given (the rest is the semantic part).
+        lengthscales: metres over which the positional part of layers (0-2, 3-5, 6, 7-8)
+            stays similar: coarse layers are smooth, fine layers sharper.
         mono_mae: mean absolute error of the stub monocular depth in metres (None = the
             default: 0.27 m indoors, 8 % of the mean true depth outdoors).
         scale_share: share of the depth error that is a global scale error (the rest is the
@@ -81,12 +85,16 @@ class StubBackend(Backend):
 
     name = "stub"
     label = "stub backend (synthetic stand-in features, no learned model)"
+    # The pipeline passes class ids and scene coordinates only to backends that ask.
+    uses_scene_hints = True
 
-    def __init__(self, cfg, noise: float = 0.2, texture_noise: float = 3.0,
+    def __init__(self, cfg, noise: float = 1.5, texture_noise: float = 3.0,
                  channels: tuple[int, int, int, int] = STUB_CHANNELS,
                  mono_mae: float | None = None, scale_share: float = 0.8,
                  distortion_cells: tuple[int, int] = (3, 4),
                  context: tuple[float, ...] = (0.0, 1.0, 3.0),
+                 position_share: float = 0.3,
+                 lengthscales: tuple[float, float, float, float] = (2.4, 1.2, 0.6, 0.3),
                  resize_hw: tuple[int, int] | None = None, device: str | None = None):
         super().__init__(cfg, resize_hw)
         if noise < 0 or texture_noise < 0:
@@ -100,6 +108,10 @@ class StubBackend(Backend):
         self.scale_share = float(scale_share)
         self.distortion_cells = tuple(int(c) for c in distortion_cells)
         self.context = tuple(float(c) for c in context)
+        if not 0.0 <= position_share <= 1.0:
+            raise ValueError(f"position_share must be in [0, 1], got {position_share}")
+        self.position_share = float(position_share)
+        self.lengthscales = _group_channels(lengthscales)
         self._emb_cache: dict[tuple[int, int, int], np.ndarray] = {}
 
     # ---- diffusion stand-in -------------------------------------------------------------
@@ -137,7 +149,42 @@ class StubBackend(Backend):
         frac[~nz] = 0.0
         return frac, classes
 
-    def _features(self, ids: np.ndarray | None, side: str) -> list[np.ndarray]:
+    def _positional(self, layer: int, xyz_cells: np.ndarray) -> np.ndarray:
+        """Random Fourier features ``(C, h, w)`` of pooled scene points ``(3, h, w)``.
+
+        Their dot product approximates a Gaussian kernel of the layer's lengthscale in
+        metres, so two cells look alike exactly when they see nearby scene points, from
+        either modality. Cells without a point get zeros.
+        """
+        C = self.channels[layer]
+        rng = np.random.default_rng(seed_from(self.cfg.seed, "stub-pos", layer))
+        B = rng.standard_normal((C, 3)) / self.lengthscales[layer]
+        phase = rng.uniform(0, 2 * np.pi, C)
+        _, h, w = xyz_cells.shape
+        flat = xyz_cells.reshape(3, -1)
+        valid = np.all(np.isfinite(flat), axis=0)
+        out = np.zeros((C, h * w), dtype=np.float32)
+        out[:, valid] = np.sqrt(2.0 / C) * np.cos(B @ flat[:, valid] + phase[:, None])
+        return out.reshape(C, h, w)
+
+    def _pooled_xyz(self, xyz: np.ndarray, stride: int) -> np.ndarray:
+        """Mean scene point ``(3, h, w)`` of each cell of the layer grid (NaN where none)."""
+        H, W = xyz.shape[:2]
+        rh, rw = self.resize_hw
+        h, w = rh // stride, rw // stride
+        rows = np.minimum(((np.arange(H) + 0.5) * h / H).astype(np.int64), h - 1)
+        cols = np.minimum(((np.arange(W) + 0.5) * w / W).astype(np.int64), w - 1)
+        cell = (rows[:, None] * w + cols[None, :]).ravel()
+        pts = xyz.reshape(-1, 3)
+        ok = np.all(np.isfinite(pts), axis=1)
+        count = np.bincount(cell[ok], minlength=h * w).astype(np.float64)
+        out = np.stack([np.bincount(cell[ok], pts[ok, k], minlength=h * w) for k in range(3)])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out = out / count
+        out[:, count == 0] = np.nan
+        return out.reshape(3, h, w)
+
+    def _features(self, ids: np.ndarray | None, side: str, xyz: np.ndarray | None = None) -> list[np.ndarray]:
         if ids is None:
             raise ValueError(
                 "the stub diffusion features need a synthetic scene: pass the per-pixel class-id "
@@ -151,6 +198,11 @@ class StubBackend(Backend):
         id_key = np.ascontiguousarray(ids.astype(np.int32)).tobytes()
         out = []
         frac_cache: dict[int, tuple] = {}
+        xyz_cache: dict[int, np.ndarray] = {}
+        if xyz is not None:
+            xyz = np.asarray(xyz, dtype=np.float64)
+            if xyz.shape != ids.shape + (3,):
+                raise ValueError(f"xyz must be (H, W, 3) like ids {ids.shape}, got {xyz.shape}")
         for layer in range(N_LAYERS):
             stride = LAYER_STRIDES[layer]
             if stride not in frac_cache:
@@ -164,6 +216,11 @@ class StubBackend(Backend):
                 E = np.stack([self._embedding(layer, k, si) for k in classes])  # (K, C)
                 signal += (E.T @ f.reshape(K, -1)).reshape(C, h, w)
             signal /= np.sqrt(len(self.context))
+            if xyz is not None and self.position_share > 0:
+                if stride not in xyz_cache:
+                    xyz_cache[stride] = self._pooled_xyz(xyz, stride)
+                signal = (np.sqrt(1.0 - self.position_share) * signal
+                          + np.sqrt(self.position_share) * self._positional(layer, xyz_cache[stride]))
             noise = self.noise
             if layer >= 7:
                 signal = 0.5 * signal
@@ -176,15 +233,17 @@ class StubBackend(Backend):
             out.append(signal.astype(np.float32, copy=False))
         return out
 
-    def diffusion_rgb(self, image: np.ndarray, ids: np.ndarray | None = None) -> list[np.ndarray]:
+    def diffusion_rgb(self, image: np.ndarray, ids: np.ndarray | None = None,
+                      xyz: np.ndarray | None = None) -> list[np.ndarray]:
         if ids is not None and image is not None and np.shape(ids) != np.shape(image)[:2]:
             raise ValueError(f"ids {np.shape(ids)} and image {np.shape(image)[:2]} differ in size")
-        return self._features(ids, "rgb")
+        return self._features(ids, "rgb", xyz)
 
-    def diffusion_depth(self, depth: np.ndarray, ids: np.ndarray | None = None) -> list[np.ndarray]:
+    def diffusion_depth(self, depth: np.ndarray, ids: np.ndarray | None = None,
+                        xyz: np.ndarray | None = None) -> list[np.ndarray]:
         if ids is not None and depth is not None and np.shape(ids) != np.shape(depth):
             raise ValueError(f"ids {np.shape(ids)} and depth {np.shape(depth)} differ in size")
-        return self._features(ids, "depth")
+        return self._features(ids, "depth", xyz)
 
     # ---- monocular depth stand-in -------------------------------------------------------
     def mono_depth(self, image: np.ndarray, depth_gt: np.ndarray | None = None) -> np.ndarray:

@@ -73,10 +73,12 @@ class _TorchBackend(Backend):
             self._zoe = self._build_zoe()
         return self._zoe
 
-    def diffusion_rgb(self, image: np.ndarray, ids: np.ndarray | None = None) -> list[np.ndarray]:
+    def diffusion_rgb(self, image: np.ndarray, ids: np.ndarray | None = None,
+                      xyz: np.ndarray | None = None) -> list[np.ndarray]:
         return self.diffusion.rgb(image)
 
-    def diffusion_depth(self, depth: np.ndarray, ids: np.ndarray | None = None) -> list[np.ndarray]:
+    def diffusion_depth(self, depth: np.ndarray, ids: np.ndarray | None = None,
+                        xyz: np.ndarray | None = None) -> list[np.ndarray]:
         return self.diffusion.depth(depth)
 
     def mono_depth(self, image: np.ndarray, depth_gt: np.ndarray | None = None) -> np.ndarray:
