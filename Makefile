@@ -13,7 +13,7 @@ reproduce: .venv/.installed
 	$(PY) -m freereg_lib.reproduce --out $(RUN)
 
 test: .venv/.installed
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q --nbmake tests notebooks
 
 clean-venv:
 	rm -rf .venv
