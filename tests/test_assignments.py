@@ -1,0 +1,329 @@
+"""Course assignments (issue 6): student versions of the notebooks and the autograder.
+
+* ``make`` writes student notebooks that hold no solution code: every ``solution`` cell keeps
+  its functions' signatures and docstrings and raises ``NotImplementedError`` with a hint; the
+  ``check`` cells and everything else stay; outputs are stripped.
+* The autograder gives the answer key (the notebooks themselves) full marks, the untouched
+  student version zero, and partial, broken, looping or exiting work its due without crashing.
+* A student notebook filled from the key runs top to bottom with papermill; left unfilled it
+  stops at its first ``check`` cell.
+"""
+from __future__ import annotations
+
+import ast
+import copy
+import inspect
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+nbformat = pytest.importorskip("nbformat")
+papermill = pytest.importorskip("papermill")
+
+from freereg_lib import assignments as A  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+NOTEBOOKS = ROOT / "notebooks"
+WITH_EXERCISES = sorted({e.notebook for e in A.EXERCISES.values()})
+
+
+def _solution_cells(nb):
+    return [c for c in nb.cells if c.cell_type == "code" and "solution" in c.metadata.get("tags", [])]
+
+
+def _check_cells(nb):
+    return [c for c in nb.cells if c.cell_type == "code" and "check" in c.metadata.get("tags", [])]
+
+
+def _body_lines(source: str) -> set[str]:
+    """The solution's own lines: function bodies after the docstring, and other top-level code."""
+    tree = ast.parse(source)
+    lines = source.splitlines()
+    body = set()
+    for node in tree.body:
+        if isinstance(node, ast.FunctionDef):
+            stmts = node.body
+            if ast.get_docstring(node) is not None:
+                stmts = stmts[1:]
+            if stmts:
+                body |= {ln.strip() for ln in lines[stmts[0].lineno - 1 : node.end_lineno]}
+        elif not isinstance(node, (ast.Import, ast.ImportFrom)):
+            body |= {ln.strip() for ln in lines[node.lineno - 1 : node.end_lineno]}
+    return {ln for ln in body if ln and not ln.startswith("# HINT")}
+
+
+def _code_lines(cells) -> set[str]:
+    return {ln.strip() for c in cells if c.cell_type == "code" for ln in c.source.splitlines() if ln.strip()}
+
+
+@pytest.fixture(scope="module")
+def student_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("student")
+    A.make(out)
+    return out
+
+
+def _student(student_dir, stem):
+    return nbformat.read(student_dir / f"{stem}.ipynb", as_version=4)
+
+
+def _key(stem):
+    return nbformat.read(NOTEBOOKS / f"{stem}.ipynb", as_version=4)
+
+
+# --------------------------------------------------------------------------------------
+# The registry and the notebooks agree.
+
+def test_every_exercise_has_its_tagged_solution_and_check_cells():
+    for stem in WITH_EXERCISES:
+        nb = _key(stem)
+        defined = [n for c in _solution_cells(nb) for n in A._defined_functions(c.source)]
+        registered = [n for n, e in A.EXERCISES.items() if e.notebook == stem]
+        assert sorted(defined) == sorted(registered), f"{stem}: solution cells define {defined}, registry {registered}"
+        checks = "\n".join(c.source for c in _check_cells(nb))
+        for name in defined:
+            assert name in checks, f"{stem}: no check cell calls {name}"
+    for e in A.EXERCISES.values():
+        assert e.cases and e.max_points > 0 and e.teaches, e.function
+
+
+# --------------------------------------------------------------------------------------
+# Student versions.
+
+def test_make_writes_every_notebook_and_they_validate(student_dir, unfilled_run):
+    # (unfilled_run only starts the slow background papermill run early; see the end of the file.)
+    assert sorted(p.name for p in student_dir.glob("*.ipynb")) == sorted(p.name for p in NOTEBOOKS.glob("*.ipynb"))
+    for path in student_dir.glob("*.ipynb"):
+        nb = nbformat.read(path, as_version=4)
+        nbformat.validate(nb)
+        code = [c for c in nb.cells if c.cell_type == "code"]
+        assert "parameters" in code[0].metadata.get("tags", []), f"{path.name}: parameters cell no longer first"
+        assert not any(c.outputs or c.execution_count is not None for c in code), f"{path.name} carries outputs"
+        assert nb.metadata[A.METADATA_KEY]["notebook"] == path.stem
+        # Outputs go into the student's own folder, and papermill still reads every parameter.
+        assert f'out_dir = "runs/{path.stem}"' in code[0].source and 'figures_dir = "figures"' in code[0].source
+        key_params = papermill.inspect_notebook(str(NOTEBOOKS / path.name))
+        assert papermill.inspect_notebook(str(path)).keys() == key_params.keys()
+
+
+def test_student_notebooks_hold_no_solution_code(student_dir):
+    for stem in WITH_EXERCISES:
+        key, student = _key(stem), _student(student_dir, stem)
+        elsewhere = _code_lines(c for c in key.cells if c not in _solution_cells(key))
+        solution = set().union(*(_body_lines(c.source) for c in _solution_cells(key)))
+        assert solution, f"{stem}: the key's solution cells have no body?"
+        leaked = (solution - elsewhere) & _code_lines(student.cells)
+        assert not leaked, f"{stem}: solution lines in the student version: {sorted(leaked)}"
+        text = json.dumps(student)
+        for line in solution - elsewhere:
+            if len(line) > 12:
+                assert json.dumps(line)[1:-1] not in text, f"{stem}: {line!r} is in the student notebook"
+
+
+def test_stubs_keep_signatures_docstrings_and_checks_and_raise_a_hint(student_dir):
+    for stem in WITH_EXERCISES:
+        key, student = _key(stem), _student(student_dir, stem)
+        assert [c.source for c in _check_cells(student)] == [c.source for c in _check_cells(key)]
+        assert len(_solution_cells(student)) == len(_solution_cells(key))
+        for mine, theirs in zip(_solution_cells(student), _solution_cells(key)):
+            ns_s, ns_k = {"np": np}, {"np": np}
+            exec(mine.source, ns_s)
+            exec(theirs.source, ns_k)
+            for name in A._defined_functions(theirs.source):
+                assert inspect.signature(ns_s[name]) == inspect.signature(ns_k[name]), name
+                assert inspect.getdoc(ns_s[name]) == inspect.getdoc(ns_k[name]), name
+                n_args = len([p for p in inspect.signature(ns_s[name]).parameters.values()
+                              if p.default is inspect.Parameter.empty])
+                with pytest.raises(NotImplementedError, match=name):
+                    ns_s[name](*([None] * n_args))
+    # Hints: the exercise text's "Hint:" sentence, else the docstring's first line.
+    src = _solution_cells(_student(student_dir, "00_preliminaries"))[0].source
+    assert "np.minimum.at" in src
+    src = _solution_cells(_student(student_dir, "03_fusion"))[1].source
+    assert "Hint: [w * f_d / |f_d|" in src
+
+
+def test_stub_source_handles_hint_comments_decorators_and_one_liners():
+    source = (
+        "import math\n"
+        "CONST = 3\n\n"
+        "# HINT: start from the mean\n"
+        "@staticmethod\n"
+        "def student_a(x: 'list[int]',\n"
+        "              y=(1, 2)) -> float:\n"
+        "    '''Multi-line\n    docstring.'''\n"
+        "    def helper(z):\n"
+        "        return z * 2\n"
+        "    return helper(x) + CONST\n\n"
+        "def student_b(x): return x + 41\n"
+    )
+    stub = A.stub_source(source, md_hint="from the text")
+    assert "import math" in stub and "CONST" not in stub and "helper" not in stub and "41" not in stub
+    assert "@staticmethod" in stub and "y=(1, 2)) -> float:" in stub and "docstring.'''" in stub
+    ns: dict = {}
+    exec(stub, ns)
+    with pytest.raises(NotImplementedError, match="start from the mean"):
+        ns["student_a"].__func__([1], 2)
+    with pytest.raises(NotImplementedError, match="from the text"):
+        ns["student_b"](1)
+
+
+# --------------------------------------------------------------------------------------
+# The autograder.
+
+def test_grading_the_answer_key_gives_full_marks(capsys):
+    result = A.grade(NOTEBOOKS)
+    out = capsys.readouterr().out
+    assert [e["exercise"] for e in result["exercises"]] == list(A.EXERCISES)
+    bad = {e["exercise"]: e.get("message") for e in result["exercises"] if e["status"] != "ok"}
+    assert not bad, bad
+    assert result["score"] == result["max"] == sum(e.max_points for e in A.EXERCISES.values())
+    assert "total" in out and f"{result['max']:g}/{result['max']:g}" in out
+    one = A.grade(NOTEBOOKS / "03_fusion.ipynb", print_table=False)
+    assert [e["exercise"] for e in one["exercises"]] == ["student_mutual_nn", "student_fuse"]
+    assert one["score"] == one["max"] == 20
+
+
+def test_grading_the_untouched_student_version_gives_zero(student_dir, tmp_path, capsys):
+    report = tmp_path / "scores.json"
+    assert A.main(["grade", str(student_dir), "--json", str(report)]) == 0
+    out = capsys.readouterr().out
+    result = json.loads(report.read_text())
+    assert result["score"] == 0 and result["max"] == 60
+    assert {e["status"] for e in result["exercises"]} == {"not implemented"}
+    assert "0/60" in out and "not implemented" in out
+
+
+def _variant(student_dir, tmp_path, stem, sources: dict[str, str], extra_cell: str | None = None) -> Path:
+    nb = copy.deepcopy(_student(student_dir, stem))
+    for cell in _solution_cells(nb):
+        names = A._defined_functions(cell.source)
+        cell.source = "\n\n".join(sources.get(n, cell.source) for n in names) if names else cell.source
+    if extra_cell is not None:
+        nb.cells.append(nbformat.v4.new_code_cell(extra_cell))
+    path = tmp_path / "alice" / f"{stem}.ipynb"
+    path.parent.mkdir(exist_ok=True)
+    nbformat.write(nb, str(path))
+    return path
+
+
+def _key_function(stem, name):
+    for cell in _solution_cells(_key(stem)):
+        if name in A._defined_functions(cell.source):
+            return cell.source
+    raise KeyError(name)
+
+
+def test_grader_scores_partial_and_broken_work_without_crashing(student_dir, tmp_path, capsys):
+    no_reflection_fix = _key_function("02_geometric_features", "student_kabsch").replace(
+        "np.sign(np.linalg.det(V @ U.T))", "1.0")
+    assert no_reflection_fix != _key_function("02_geometric_features", "student_kabsch")
+    # 00: project_to_depth written in an untagged cell (its tagged cell emptied), inlier ratio
+    # with the pose used the wrong way round, and a print at top level.
+    _variant(student_dir, tmp_path, "00_preliminaries", {
+        "student_project_to_depth": "print('working on it')",
+        "student_inlier_ratio": _key_function("00_preliminaries", "student_inlier_ratio").replace(
+            "p_pc = (p_cam - t) @ R", "p_pc = p_cam @ R.T + t"),
+    }, extra_cell=_key_function("00_preliminaries", "student_project_to_depth"))
+    _variant(student_dir, tmp_path, "02_geometric_features", {"student_kabsch": no_reflection_fix})
+    _variant(student_dir, tmp_path, "03_fusion", {
+        "student_mutual_nn": "def student_mutual_nn(fa, fb)\n    return fa",  # a syntax error
+        "student_fuse": _key_function("03_fusion", "student_fuse").replace(  # loops forever at w = 0
+            "    def unit_rows(x):", "    while w == 0:\n        pass\n\n    def unit_rows(x):"),
+    })
+    _variant(student_dir, tmp_path, "04_benchmark", {
+        "student_registration_recall": "import sys\ndef student_registration_recall(re, te, ladder):\n    sys.exit(3)",
+    })
+    result = A.grade(tmp_path / "alice", timeout=1.0)
+    out = capsys.readouterr().out
+    by = {e["exercise"]: e for e in result["exercises"]}
+    assert by["student_project_to_depth"]["score"] == 10, by["student_project_to_depth"]
+    assert by["student_inlier_ratio"]["status"] in ("failed", "partial")
+    assert by["student_inlier_ratio"]["score"] < 10
+    assert by["student_kabsch"]["status"] == "partial" and by["student_kabsch"]["score"] == 7
+    assert [c["ok"] for c in by["student_kabsch"]["cases"]] == [True, False, True, True]
+    assert by["student_mutual_nn"]["status"] == "missing" and "SyntaxError" in by["student_mutual_nn"]["message"]
+    fuse = by["student_fuse"]
+    assert fuse["score"] == 8 and "TimeoutError" in " ".join(c["message"] for c in fuse["cases"])
+    assert by["student_registration_recall"]["score"] == 0
+    assert "SystemExit" in by["student_registration_recall"]["message"]
+    assert "working on it" not in out and "total" in out
+
+
+def test_grader_reports_a_missing_notebook_and_a_missing_path(student_dir, tmp_path, capsys):
+    folder = tmp_path / "bob"
+    folder.mkdir()
+    (folder / "04_benchmark.ipynb").write_bytes((student_dir / "04_benchmark.ipynb").read_bytes())
+    (folder / "notes.ipynb").write_text("not a notebook")
+    result = A.grade(folder, print_table=False)
+    assert result["score"] == 0 and result["max"] == 60
+    assert {e["status"] for e in result["exercises"]} == {"missing", "not implemented"}
+    assert A.main(["grade", str(tmp_path / "nobody")]) == 0
+    assert "no such notebook or folder" in capsys.readouterr().out
+
+
+def test_module_runs_as_a_command():
+    proc = subprocess.run([sys.executable, "-m", "freereg_lib.assignments", "list"],
+                          capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr
+    for name in A.EXERCISES:
+        assert name in proc.stdout
+
+
+# --------------------------------------------------------------------------------------
+# Papermill: filled from the key it runs; unfilled it stops at the first check.
+# The unfilled run goes in a background process, started by the first test that makes the
+# student versions, so it overlaps the other tests and the filled run (each kernel mostly
+# waits on imports): the file takes ~45 s, not ~65 s.
+
+PAPERMILL_STEM = "00_preliminaries"
+
+
+def _params(tmp: Path) -> dict:
+    return {"n_pairs": 1, "out_dir": str(tmp / "out"), "figures_dir": str(tmp / "figures")}
+
+
+@pytest.fixture(scope="module")
+def unfilled_run(student_dir, tmp_path_factory):
+    """papermill on the untouched student notebook, in the background: (process, executed notebook)."""
+    tmp = tmp_path_factory.mktemp("unfilled")
+    executed = tmp / f"{PAPERMILL_STEM}.executed.ipynb"
+    cmd = [sys.executable, "-m", "papermill", str(student_dir / f"{PAPERMILL_STEM}.ipynb"), str(executed),
+           "-k", "python3", "--cwd", str(NOTEBOOKS), "--no-progress-bar"]
+    for name, value in _params(tmp).items():
+        cmd += ["-p", name, str(value)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    yield proc, executed
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait()
+
+
+def test_student_notebook_filled_from_the_key_runs_top_to_bottom(student_dir, tmp_path):
+    filled = A.fill(_student(student_dir, PAPERMILL_STEM), _key(PAPERMILL_STEM))
+    assert [c.source for c in _solution_cells(filled)] == [c.source for c in _solution_cells(_key(PAPERMILL_STEM))]
+    path = tmp_path / f"{PAPERMILL_STEM}.ipynb"
+    nbformat.write(filled, str(path))
+    done = papermill.execute_notebook(str(path), str(tmp_path / "executed.ipynb"), parameters=_params(tmp_path),
+                                      kernel_name="python3", cwd=str(NOTEBOOKS), progress_bar=False)
+    printed = "".join(o.get("text", "") for c in _check_cells(done) for o in c.outputs)
+    for name in A._defined_functions("\n".join(c.source for c in _solution_cells(done))):
+        assert f"{name} matches" in printed, printed
+
+
+def test_unfilled_student_notebook_stops_at_its_first_check(student_dir, unfilled_run):
+    proc, executed = unfilled_run
+    log, _ = proc.communicate(timeout=600)
+    assert proc.returncode != 0 and "PapermillExecutionError" in log, log[-3000:]
+    nb = nbformat.read(executed, as_version=4)
+    code = [c for c in nb.cells if c.cell_type == "code"]
+    failed = [k for k, c in enumerate(code) if any(o.output_type == "error" for o in c.outputs)]
+    assert len(failed) == 1, f"error outputs in code cells {failed}"
+    cell = code[failed[0]]
+    assert cell.source == _check_cells(_student(student_dir, PAPERMILL_STEM))[0].source
+    assert [o.ename for o in cell.outputs if o.output_type == "error"] == ["NotImplementedError"]
+    assert all(c.execution_count is None for c in code[failed[0] + 1:]), "cells after the failed check ran"
