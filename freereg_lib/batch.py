@@ -425,6 +425,7 @@ class Report:
     def summary(self) -> str:
         lines = [f"{self.run_dir}: {len(self.finished)} job(s) ran, {len(self.skipped)} already "
                  f"done (skipped), {len(self.failed)} failed"]
+        lines += [f"  finished {j}" for j in self.finished]
         lines += [f"  FAILED {j}: {e}\n         see {self.run_dir / j}" for j, e in self.failed.items()]
         lines += [f"  not in the table: {j}: {why}" for j, why in self.incomplete.items() if j not in self.failed]
         lines.append(f"results: {self.run_dir / 'results.csv'} and results.md")

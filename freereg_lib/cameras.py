@@ -64,6 +64,69 @@ def is_rigid(T: np.ndarray, atol: float = 1e-6) -> bool:
     )
 
 
+def check_pose(T: np.ndarray, name: str = "T", atol: float = 1e-4) -> np.ndarray:
+    """``T`` as ``(4, 4) float64`` when it is a rigid transform (:func:`is_rigid` at ``atol``).
+
+    Otherwise a ``ValueError`` names ``name``, what was expected and what is wrong (a
+    reflection, a scale, a transposed matrix, a bad last row).
+    """
+    arr = np.asarray(T)
+    if arr.shape != (4, 4) or not np.issubdtype(arr.dtype, np.number):
+        raise ValueError(f"{name} must be a (4, 4) pose [[R, t], [0, 0, 0, 1]], got shape {arr.shape} {arr.dtype}")
+    arr = arr.astype(np.float64)
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} has non-finite entries (NaN or inf): {arr.tolist()}")
+    if is_rigid(arr, atol):
+        return arr
+    R = arr[:3, :3]
+    det = float(np.linalg.det(R))
+    ortho = float(np.abs(R.T @ R - np.eye(3)).max())
+    if not np.allclose(arr[3, :3], 0, atol=atol) and is_rigid(arr.T, atol):
+        hint = "; it looks transposed: pass T.T"
+    elif not np.allclose(arr[3], [0, 0, 0, 1], atol=atol):
+        hint = f"; its last row is {arr[3].tolist()}, expected [0, 0, 0, 1]"
+    elif det < 0:
+        hint = "; det(R) < 0 is a reflection (an axis flipped, or a left-handed frame)"
+    elif np.allclose(R.T @ R, np.eye(3) * abs(det) ** (2 / 3), rtol=1e-3, atol=atol):
+        hint = f"; R carries a scale of {abs(det) ** (1 / 3):.4g} (a similarity): divide it out"
+    else:
+        hint = ""
+    raise ValueError(
+        f"{name} is not a rigid transform: expected [[R, t], [0, 0, 0, 1]] with R orthonormal and "
+        f"det(R) = +1, got max |R^T R - I| = {ortho:.3g}, det(R) = {det:.6g}{hint}"
+    )
+
+
+def check_intrinsics(K: np.ndarray, size: tuple[int, int] | None = None, name: str = "K") -> np.ndarray:
+    """``K`` as ``(3, 3) float64`` when it is a pinhole matrix that fits an image of ``size = (H, W)``.
+
+    Checks: finite, last row ``[0, 0, 1]``, focal lengths ``fx, fy > 0``, and (with ``size``)
+    the principal point inside the image (``-0.5 <= cx <= W - 0.5``, likewise ``cy``).
+    Otherwise a ``ValueError`` names ``name`` and what was expected.
+    """
+    arr = np.asarray(K)
+    if arr.shape != (3, 3) or not np.issubdtype(arr.dtype, np.number):
+        raise ValueError(f"{name} must be a (3, 3) intrinsics matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], "
+                         f"got shape {arr.shape} {arr.dtype}")
+    arr = arr.astype(np.float64)
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} has non-finite entries (NaN or inf): {arr.tolist()}")
+    if not np.allclose(arr[2], [0.0, 0.0, 1.0]):
+        raise ValueError(f"{name} must have the last row [0, 0, 1], got {arr[2].tolist()}")
+    fx, fy, cx, cy = arr[0, 0], arr[1, 1], arr[0, 2], arr[1, 2]
+    if not (fx > 0 and fy > 0):
+        raise ValueError(f"{name} has focal lengths fx = {fx:g}, fy = {fy:g} px; both must be > 0")
+    if size is not None:
+        H, W = size
+        if not (-0.5 <= cx <= W - 0.5 and -0.5 <= cy <= H - 0.5):
+            raise ValueError(
+                f"{name}'s principal point (cx, cy) = ({cx:g}, {cy:g}) lies outside its {W} x {H} (W x H) "
+                f"image; expected 0 <= cx < {W} and 0 <= cy < {H}. Were the intrinsics made for another "
+                "resolution (see cameras.scale_intrinsics), or are they normalised instead of in pixels?"
+            )
+    return arr
+
+
 def rotation_about(axis: np.ndarray, angle_rad: float) -> np.ndarray:
     """Rodrigues rotation ``(3, 3)`` about ``axis (3,)`` by ``angle_rad``."""
     a = np.asarray(axis, dtype=np.float64)

@@ -82,7 +82,8 @@ def aggregate(
 
     Returns percentages ``FMR``, ``IR``, ``RR`` and ``RR@<deg>deg/<m>m`` for each ladder rung,
     the mean ``IN``, the mean and median ``RE`` / ``TE`` over pairs that have an estimate, and
-    ``n_pairs`` / ``n_failed`` (pairs without an estimate). An empty list gives NaNs.
+    ``n_pairs`` / ``n_failed`` (pairs without an estimate). An empty list gives NaNs. A row
+    whose ``IR`` is not a fraction in [0, 1] (a percentage, say) raises ``ValueError``.
     """
     n = len(rows)
     out: dict = {"n_pairs": n}
@@ -90,8 +91,15 @@ def aggregate(
         for key in ("FMR", "IR", "IN", "RR", "RE", "TE", "RE_median", "TE_median"):
             out[key] = math.nan
         out["n_failed"] = 0
+        for deg, m in ladder:
+            out[f"RR@{deg:g}deg/{m:g}m"] = math.nan
         return out
     ir = np.array([r["IR"] for r in rows], dtype=np.float64)
+    bad = ~((ir >= 0.0) & (ir <= 1.0))
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise ValueError(f"IR must be a fraction in [0, 1] in every row; row {k} (pair {rows[k].get('pair', '?')!r}) "
+                         f"has IR = {float(ir[k])!r} (a percentage? divide it by 100)")
     inn = np.array([r["IN"] for r in rows], dtype=np.float64)
     re = np.array([r.get("RE", math.nan) for r in rows], dtype=np.float64)
     te = np.array([r.get("TE", math.nan) for r in rows], dtype=np.float64)

@@ -45,7 +45,12 @@ class DepthView:
 
 
 def depth_view(pair: Pair, cfg: FreeRegConfig) -> DepthView:
-    """Project the pair's cloud on its depth camera, edge-filter and densify it."""
+    """Project the pair's cloud on its depth camera, edge-filter and densify it.
+
+    Raises ``ValueError`` for a pair that fails :meth:`Pair.validate` or whose cloud leaves
+    the depth view empty (the message counts where the points went).
+    """
+    pair.validate()
     if len(pair.points) == 0:
         raise ValueError(f"pair {pair.name}: the point cloud is empty")
     raw, index = projection.project_to_depth(
@@ -56,7 +61,7 @@ def depth_view(pair: Pair, cfg: FreeRegConfig) -> DepthView:
         raw = projection.edge_filter(raw, cfg.edge_filter_m)
         index[raw == 0] = -1
     if not np.any(raw > 0):
-        raise ValueError(f"pair {pair.name}: no point of the cloud projects into the depth view")
+        raise ValueError(f"pair {pair.name}: no point of the cloud projects into the depth view; {_where_points_went(pair, cfg)}")
     dense = densify.densify(raw, cfg.densify, max_depth=max(cfg.depth_max, 1.0) * 1.5)
     dense[(dense <= cfg.depth_min) | (dense >= cfg.depth_max)] = 0.0
     ids = None
@@ -64,6 +69,22 @@ def depth_view(pair: Pair, cfg: FreeRegConfig) -> DepthView:
         ids = _nearest_fill(np.where(index >= 0, pair.point_ids[np.maximum(index, 0)], 0), index >= 0)
         ids[dense == 0] = 0
     return DepthView(raw, dense, index, ids)
+
+
+def _where_points_went(pair: Pair, cfg: FreeRegConfig) -> str:
+    """How many points are in front of the depth camera, in the depth range, in its view."""
+    uv, z = cameras.project(cameras.transform(cameras.invert(pair.T_pc_sensor), pair.points), pair.K_depth)
+    H, W = pair.depth_size
+    front = z > 0
+    in_range = front & (z > cfg.depth_min) & (z < cfg.depth_max)
+    with np.errstate(invalid="ignore"):
+        inside = in_range & (np.rint(uv[:, 0]) >= 0) & (np.rint(uv[:, 0]) < W) & (np.rint(uv[:, 1]) >= 0) & (np.rint(uv[:, 1]) < H)
+    return (
+        f"of its {len(z)} points {int(front.sum())} lie in front of the depth camera, {int(in_range.sum())} within "
+        f"depth_min..depth_max = {cfg.depth_min:g}..{cfg.depth_max:g} m and {int(inside.sum())} inside its {W} x {H} view "
+        f"(before the {cfg.edge_filter_m:g} m edge filter); check T_pc_sensor (the depth camera in the cloud's frame), "
+        "K_depth and depth_size"
+    )
 
 
 def _nearest_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
@@ -134,6 +155,7 @@ def compute_features(
     """Everything the matcher needs for ``pair`` (see :class:`PairFeatures`)."""
     from . import features, geometric as geo
 
+    pair.validate()
     view = depth_view(pair, cfg)
     uv_img = keypoints.grid_keypoints(pair.image_size, cfg.keypoint_grid)
     uv_dep = keypoints.grid_keypoints(pair.depth_size, cfg.keypoint_grid)
@@ -141,7 +163,12 @@ def compute_features(
     keep = z_dep > 0
     uv_dep, z_dep = uv_dep[keep], z_dep[keep]
     if len(uv_dep) == 0:
-        raise ValueError(f"pair {pair.name}: no depth keypoint has a valid depth")
+        raise ValueError(
+            f"pair {pair.name}: no depth keypoint has a valid depth: none of the {len(keep)} keypoints of the "
+            f"{cfg.keypoint_grid[0]} x {cfg.keypoint_grid[1]} grid (cfg.keypoint_grid) falls on one of the "
+            f"{int(np.count_nonzero(view.dense))} pixels of the densified depth view that have depth; the cloud "
+            "covers too little of the depth camera's view"
+        )
     pts_dep = cameras.transform(pair.T_pc_sensor, cameras.lift(uv_dep, z_dep, pair.K_depth))
 
     mono = np.asarray(backend.mono_depth(pair.image, depth_gt=pair.depth_gt), dtype=np.float64)
@@ -282,6 +309,17 @@ def _describe(exc: Exception) -> str:
     return f"{type(exc).__name__}: {exc}{where}"
 
 
+ROW_COLUMNS = ("pair", "method", "solver", "w", "n_matches", "IR", "IN", "RE", "TE", "registered",
+               "n_inliers", "scale", "error")
+
+
+def rows_frame(rows: list[dict]):
+    """Per-pair rows as a DataFrame with the row columns even when there are none (an empty shard)."""
+    import pandas as pd
+
+    return pd.DataFrame(rows, columns=list(ROW_COLUMNS))
+
+
 def _row(pair, method, solver, w, n_matches, res, error, scores=None) -> dict:
     scores = scores or {"IR": 0.0, "IN": 0, "RE": math.nan, "TE": math.nan, "registered": False}
     return {
@@ -313,4 +351,7 @@ def summarize(rows: list[dict], cfg: FreeRegConfig):
         sub = [r for r in rows if r["method"] == mth and r["solver"] == sol]
         agg = metrics.aggregate(sub, cfg.rr_rot_deg, cfg.rr_trans_m, cfg.fmr_ratio, cfg.rr_ladder)
         out.append({"method": mth, "solver": sol, **agg})
+    if not out:  # an empty shard still has the table's columns
+        columns = ["method", "solver", *metrics.aggregate([], ladder=cfg.rr_ladder)]
+        return pd.DataFrame(columns=columns)
     return pd.DataFrame(out)

@@ -91,7 +91,8 @@ def kabsch_ransac(
     rows = np.nonzero(_finite_rows(pts_cam, pts_pc))[0]
     need = max(min_matches, ransac_n, 3)
     if len(rows) < need:
-        return _failed("kabsch", f"{len(rows)} usable matches, Kabsch-RANSAC needs at least {need}")
+        return _failed("kabsch", f"{len(rows)} usable matches (of {len(pts_cam)}; usable: finite 3D points on both "
+                                 f"sides), Kabsch-RANSAC needs at least {need}")
     src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts_cam[rows]))
     tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts_pc[rows]))
     idx = np.arange(len(rows), dtype=np.int32)
@@ -141,7 +142,8 @@ def pnp_ransac(
     rows = np.nonzero(_finite_rows(uv, pts_pc))[0]
     need = max(min_matches, 4)
     if len(rows) < need:
-        return _failed("pnp", f"{len(rows)} usable matches, PnP-RANSAC needs at least {need}")
+        return _failed("pnp", f"{len(rows)} usable matches (of {len(uv)}; usable: a finite pixel and 3D point), "
+                              f"PnP-RANSAC needs at least {need}")
     try:
         ok, rvec, tvec, inl = cv2.solvePnPRansac(
             pts_pc[rows], uv[rows], np.asarray(K, dtype=np.float64), None,

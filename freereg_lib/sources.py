@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Iterator
 
-from .pair import Pair
+from .pair import Pair, load_or_record
 
 SYNTHETIC = ("synthetic_indoor", "synthetic_outdoor")
 EMBEDDED = ("icl",)
@@ -31,7 +31,8 @@ def iter_pairs(
 
         kind = name.split("_")[1]
         for k in range(index, n_pairs if n_pairs is not None else 10, count):
-            yield synthetic.make_pair(kind, seed=seed * 1_000_003 + k)
+            pair_seed = seed * 1_000_003 + k
+            yield load_or_record(f"synthetic-{kind}/seed{pair_seed:04d}", synthetic.make_pair, kind, seed=pair_seed)
         return
     if name == "icl":
         from .datasets.icl import ICLSample

@@ -156,3 +156,22 @@ def test_kabsch_scale_guard_prevents_shrink_collapse():
     assert guarded.success and abs(guarded.scale - 1) < 0.01
     re, te = metrics.pose_errors(guarded.T_cam_pc, T)
     assert re < 0.5 and te < 0.2
+
+
+def test_summarize_of_no_rows_keeps_the_columns():
+    from freereg_lib import config_for, pipeline
+
+    cfg = config_for("synthetic_indoor")
+    table = pipeline.summarize([], cfg)
+    assert len(table) == 0
+    assert {"method", "solver", "FMR", "IR", "IN", "RR", "RE", "TE", "RR@20deg/0.5m"} <= set(table.columns)
+
+
+def test_rows_frame_matches_the_rows_pipeline_writes():
+    from freereg_lib import config_for, pipeline, synthetic
+    from freereg_lib.backends import get_backend
+
+    cfg = config_for("synthetic_indoor", ransac_iters=500)
+    rows = pipeline.run_pair(synthetic.make_pair("indoor", seed=4), get_backend("stub", cfg), cfg, [("FreeReg", "pnp")])
+    assert list(pipeline.rows_frame(rows).columns) == list(rows[0])
+    assert list(pipeline.rows_frame([]).columns) == list(rows[0])

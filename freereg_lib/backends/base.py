@@ -84,6 +84,19 @@ class Backend:
         return f"{type(self).__name__}(name={self.name!r}, resize_hw={self.resize_hw})"
 
 
+def check_device(device) -> None:
+    """Raise ``ValueError`` unless ``device`` is None, ``"cpu"``, ``"cuda"`` or ``"cuda:N"``
+    (a ``torch.device`` of those kinds is fine too). Whether CUDA is there is checked by
+    :func:`~freereg_lib.backends.torch_backends.resolve_device`."""
+    import re
+
+    if device is not None and not re.fullmatch(r"cpu|cuda(:\d+)?", str(device)):
+        raise ValueError(
+            f"unsupported device {device!r}; use None (CUDA when present, else CPU), 'cpu', 'cuda' or "
+            "'cuda:N' (the N-th GPU)"
+        )
+
+
 # --------------------------------------------------------------------------------------
 # Sizes and the official resize rule.
 

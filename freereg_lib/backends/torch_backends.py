@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Backend, MissingWeightsError
+from .base import Backend, MissingWeightsError, check_device
 from . import weights as W
 
 
@@ -21,6 +21,7 @@ def resolve_device(device: str | None = None, dtype=None):
     """``(torch.device, torch.dtype)``: CUDA + float16 when present, else CPU + float32."""
     import torch
 
+    check_device(device)
     if device is None:
         device = "cuda" if torch.cuda.is_available() else "cpu"
     dev = torch.device(device)
@@ -29,6 +30,11 @@ def resolve_device(device: str | None = None, dtype=None):
             f"device={device!r} was requested but CUDA is not available "
             f"(torch {torch.__version__}, torch.cuda.is_available() is False). "
             "Use device='cpu' or device=None (auto)."
+        )
+    if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
+        raise RuntimeError(
+            f"device={device!r} was requested but this machine has {torch.cuda.device_count()} CUDA "
+            f"device(s), numbered from 0. Use device='cuda:0', 'cuda' or None (auto)."
         )
     if dev.type not in ("cuda", "cpu"):
         raise ValueError(f"unsupported device {device!r}; use 'cuda', 'cuda:N' or 'cpu'")

@@ -103,11 +103,19 @@ def missing_weights_error(missing: list[tuple[str, list[str]]], weights_dir: Pat
              "at run time)."]
     for mid, searched in missing:
         lines.append(f"\n* model id {mid!r}; looked in:")
-        lines += [f"    - {s}" for s in searched]
+        lines += [f"    - {s}" + (" (exists, but holds no model_index.json or config.json: an incomplete "
+                                  "download, or another model?)" if reason is None and Path(s).is_dir() else "")
+                  for s in searched]
         lines.append("  On a machine with internet, run:")
         lines.append(f"    {download_command(mid, weights_dir)}")
     if reason:
         lines.append(f"\nLoading failed with: {reason}")
+    if weights_dir is not None and not weights_dir.is_dir():
+        lines.append(f"\nNote: weights_dir {weights_dir} does not exist (a typo, or a path relative to "
+                     f"another working directory? this one is {Path.cwd()}).")
+    elif weights_dir is not None and _is_model_folder(weights_dir):
+        lines.append(f"\nNote: weights_dir {weights_dir} is itself a model folder; weights_dir is the folder "
+                     f"that holds the model folders: pass weights_dir={str(weights_dir.parent)!r}.")
     lines.append(
         "\nThen copy the folder(s) here and pass weights_dir=... to get_backend (or set "
         "FREEREG_WEIGHTS, or cfg.extra['weights_dir']); a filled Hugging Face cache works "

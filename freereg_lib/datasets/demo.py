@@ -72,6 +72,8 @@ def read_ply_points(path: str | Path) -> np.ndarray:
         props.append((words[2], _PLY_TYPES[words[1]]))
     if not {"x", "y", "z"} <= {n for n, _ in props}:
         raise ValueError(f"{path}: vertices have no x, y, z properties")
+    if count == 0:
+        raise ValueError(f"{path} holds no vertex (an empty point cloud)")
     try:
         if fmt == "ascii":
             table = np.loadtxt(body.decode("ascii").splitlines()[:count], ndmin=2)

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import cameras
-from ..pair import Pair
+from ..pair import Pair, load_or_record
 from .common import read_depth, read_redwood_log, read_rgb
 
 ICL_ROOT = Path(__file__).resolve().parent.parent / "data" / "icl_livingroom"
@@ -57,6 +57,9 @@ class ICLSample:
         """RGB of frame ``i`` against the point cloud of frame ``j``."""
         depth_j = self.depth(j)
         points, _ = cameras.backproject(depth_j, self.K)
+        if len(points) == 0:
+            raise ValueError(f"{self.root / 'depth' / f'{j:05d}.png'} has no valid pixel (all zero): "
+                             f"the point cloud of frame {j} would be empty")
         return Pair(
             image=self.rgb(i),
             K_image=self.K.copy(),
@@ -75,8 +78,13 @@ class ICLSample:
         return [(i, j) for i in self.frames for j in self.frames if min_gap <= j - i <= max_gap]
 
     def pairs(self, n: int | None = None, max_gap: int = 40):
-        """Yield up to ``n`` pairs in a fixed order."""
+        """Yield up to ``n`` pairs in a fixed order.
+
+        A pair whose files cannot be read comes as an
+        :class:`~freereg_lib.pair.UnreadablePair` holding the error, so a benchmark records
+        it and goes on (``self.pair(i, j)`` raises it directly).
+        """
         for k, (i, j) in enumerate(self.pair_list(max_gap=max_gap)):
             if n is not None and k >= n:
                 return
-            yield self.pair(i, j)
+            yield load_or_record(f"icl/{i:05d}-{j:05d}", self.pair, i, j)

@@ -124,13 +124,17 @@ class PairSource:
         """The pairs of the first ``n`` entries (all with None), shard ``shard`` of them.
 
         The list is cut to ``n`` before sharding, so n shards together cover exactly the
-        pairs of one unsharded run.
+        pairs of one unsharded run. A pair whose files cannot be read comes as an
+        :class:`~freereg_lib.pair.UnreadablePair` holding the error, so a benchmark records
+        it and goes on (:meth:`pair` raises it directly).
         """
         from ..batch import shard_items
+        from ..pair import load_or_record
 
         entries = self.pair_list()[: n if n is not None else None]
         for entry in shard_items(entries, shard):
-            yield self.pair(entry)
+            name = entry.key if entry.key.startswith(f"{self.dataset}/") else f"{self.dataset}/{entry.key}"
+            yield load_or_record(name, self.pair, entry)
 
 
 def open_dataset(name: str, root: str | Path, **kw) -> PairSource:
