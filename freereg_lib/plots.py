@@ -46,13 +46,16 @@ def show_images(images: list, titles: list[str], suptitle: str = "", cols: int |
     cols = cols or len(images)
     rows = int(np.ceil(len(images) / cols))
     fig, axes = plt.subplots(rows, cols, figsize=(size * cols * 1.3, size * rows), squeeze=False)
+    return _fill_panels(fig, axes, images, titles, suptitle, colorbar=True)
+
+
+def _fill_panels(fig, axes, images: list, titles: list[str], suptitle: str, colorbar: bool):
+    """Draw ``images`` into the grid ``axes`` (2-D maps in turbo), blank the spare panels."""
     for ax, img, title in zip(axes.ravel(), images, titles):
         img = np.asarray(img)
-        if img.ndim == 2:
-            im = ax.imshow(img, cmap="turbo")
+        im = ax.imshow(img, cmap="turbo" if img.ndim == 2 else None)
+        if colorbar and img.ndim == 2:
             fig.colorbar(im, ax=ax, fraction=0.035)
-        else:
-            ax.imshow(img)
         ax.set_title(title, fontsize=9)
         ax.axis("off")
     for ax in axes.ravel()[len(images):]:
@@ -467,17 +470,7 @@ def image_grid(images: list, titles: list[str], suptitle: str = "", cols: int = 
     panel_w = width / cols
     fig, axes = plt.subplots(rows, cols, figsize=(width, rows * (panel_w * aspect + 0.45) + (0.4 if suptitle else 0)),
                              squeeze=False)
-    for ax, img, title in zip(axes.ravel(), images, titles):
-        img = np.asarray(img)
-        ax.imshow(img, cmap="turbo" if img.ndim == 2 else None)
-        ax.set_title(title, fontsize=9)
-        ax.axis("off")
-    for ax in axes.ravel()[len(images):]:
-        ax.axis("off")
-    if suptitle:
-        fig.suptitle(suptitle)
-    fig.tight_layout()
-    return fig
+    return _fill_panels(fig, axes, images, titles, suptitle, colorbar=False)
 
 
 # --------------------------------------------------------------------------------------
