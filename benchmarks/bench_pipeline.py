@@ -1,0 +1,744 @@
+#!/usr/bin/env python
+"""Where the time and memory of one FreeReg pair go, stage by stage (issue 7).
+
+    python benchmarks/bench_pipeline.py [--mode cpu|gpu|ci] [--pairs N] [--reps R]
+                                        [--threads T] [--json PATH]
+
+Modes
+    cpu  The whole chain with the ``stub`` backend on synthetic indoor pairs of 512 x 704
+         (the paper's indoor configuration: both solvers at 50k RANSAC iterations), then
+         the ``tiny`` backend's diffusion and monocular-depth stages (the real diffusers /
+         transformers code path with miniature random-weight models), then the matching
+         micro-benchmark: mutual nearest neighbours of 10k x 10k keypoints, C = 384 + 33.
+    gpu  The same chain with full-size Stable Diffusion v1.5 UNet, depth ControlNet v1.1,
+         VAE, CLIP ViT-L/14 text encoder and ZoeDepth (ZoeD_N, BEiT-L 384), all built from
+         their published configurations with random weights (speed does not depend on the
+         weights, and nothing is downloaded), float16 on CUDA; the stub chain and the
+         matching micro-benchmark (CPU and CUDA) on the same machine. Random weights give
+         meaningless features, so the solvers there run all their iterations: a worst case.
+    ci   Tiny sizes (a 96 x 128 pair, 500 RANSAC iterations, a 64 x 64 tiny backend with 5
+         DDIM steps, 1k x 1k matching), one repetition, torch on one thread: a check that
+         the script works, in seconds. Its numbers mean nothing.
+
+Each stage is timed inside ``pipeline.run_pair`` itself: the library functions the pipeline
+calls (``pipeline.depth_view``, the backend's ``diffusion_rgb`` / ``diffusion_depth`` /
+``mono_depth``, ``features.pca_reduce`` + ``sample_features``, ``geometric.geometric_features``
++ ``pixel_features``, ``pipeline.match``, ``pose.pnp_ransac``, ``pose.kabsch_ransac``,
+``pipeline.evaluate``) are wrapped for the duration of the run, so the table measures exactly
+what the pipeline does; "other" is the rest of ``run_pair`` (keypoints, lifting, validation).
+Times are medians over pairs x repetitions after one warm-up run, with min and max.
+
+Memory is measured in one extra run per chain (so the tracing does not slow the timed runs):
+
+* ``py peak MiB``: the largest increase of memory traced by ``tracemalloc`` during a call of
+  the stage (Python objects and every NumPy / OpenCV array; not torch CPU tensors or
+  Open3D's C++ buffers);
+* ``RSS peak MiB``: the largest increase of the process's peak resident set (``VmHWM``,
+  reset through ``/proc/self/clear_refs`` before each call, after ``malloc_trim``): every
+  allocator, but memory the allocator still holds from earlier stages is reused without
+  showing up, so it is a lower bound;
+* ``GPU peak MiB`` (gpu mode): ``torch.cuda.max_memory_allocated`` during the stage,
+  absolute (model weights included, as the paper's 12.7 GB is).
+
+Record measured figures in ``benchmarks/README.md`` with the device and the date.
+"""
+from __future__ import annotations
+
+import os
+
+# The project's default (see the Makefile): OpenBLAS threads spinning on small matrices
+# slow a 2-core machine down. Set before NumPy is imported.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse
+import contextlib
+import ctypes
+import datetime
+import gc
+import json
+import platform
+import statistics
+import sys
+import time
+import tracemalloc
+import warnings
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import numpy as np
+
+MIB = 1024.0 ** 2
+
+# ---------------------------------------------------------------------------------------
+# Published configurations of the full-size models (random weights are drawn for them).
+
+# Stable Diffusion v1.5 ``vae/config.json``.
+SD15_VAE_CONFIG = dict(
+    in_channels=3,
+    out_channels=3,
+    down_block_types=("DownEncoderBlock2D",) * 4,
+    up_block_types=("UpDecoderBlock2D",) * 4,
+    block_out_channels=(128, 256, 512, 512),
+    layers_per_block=2,
+    act_fn="silu",
+    latent_channels=4,
+    norm_num_groups=32,
+    sample_size=512,
+    scaling_factor=0.18215,
+)
+# Stable Diffusion v1.5 ``text_encoder/config.json`` (CLIP ViT-L/14 text tower).
+SD15_TEXT_CONFIG = dict(
+    vocab_size=49408,
+    hidden_size=768,
+    intermediate_size=3072,
+    num_hidden_layers=12,
+    num_attention_heads=12,
+    max_position_embeddings=77,
+    hidden_act="quick_gelu",
+    projection_dim=768,
+)
+# ``lllyasviel/control_v11f1p_sd15_depth`` ``config.json``: the SD v1.5 encoder half plus
+# the hint encoder below (the rest of its fields are ``ControlNetModel``'s defaults).
+CONTROLNET_V11_DEPTH_EXTRA = dict(
+    conditioning_embedding_out_channels=(16, 32, 96, 256),
+    controlnet_conditioning_channel_order="rgb",
+)
+# ZoeD_M12_N (``Intel/zoedepth-nyu``): BEiT-L/16 at 384, DPT neck, one 64-bin NYU head
+# (transformers' ``convert_zoedepth_to_hf.get_zoedepth_config("ZoeD_N")``).
+ZOE_N_BACKBONE = dict(
+    image_size=384,
+    num_hidden_layers=24,
+    hidden_size=1024,
+    intermediate_size=4096,
+    num_attention_heads=16,
+    use_relative_position_bias=True,
+    reshape_hidden_states=False,
+    out_features=["stage6", "stage12", "stage18", "stage24"],
+)
+ZOE_N = dict(
+    neck_hidden_sizes=[256, 512, 1024, 1024],
+    bin_centers_type="softplus",
+    bin_configurations=[{"name": "nyu", "n_bins": 64, "min_depth": 1e-3, "max_depth": 10.0}],
+)
+
+# The paper's solvers for the full method; ``--variants all`` adds FreeReg-D / FreeReg-G.
+PAPER_VARIANTS = (("FreeReg", "pnp"), ("FreeReg", "kabsch"))
+
+# Stage label -> the (module attribute | backend method) the pipeline calls.
+STAGES = (
+    "projection + densify",
+    "stub scene hints",
+    "diffusion RGB",
+    "diffusion depth",
+    "PCA + keypoint sampling",
+    "monocular depth",
+    "geometric features",
+    "matching",
+    "solver PnP-RANSAC",
+    "solver Kabsch-RANSAC",
+    "metrics",
+)
+
+
+# ---------------------------------------------------------------------------------------
+# The device.
+
+def _cpu_model() -> str:
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.lower().startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def device_info(mode: str, device: str | None) -> dict:
+    import cv2
+    import open3d
+    import torch
+
+    try:
+        n_cpu = len(os.sched_getaffinity(0))
+    except AttributeError:
+        n_cpu = os.cpu_count()
+    info = {
+        "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "mode": mode,
+        "cpu": _cpu_model(),
+        "cpu_cores": n_cpu,
+        "load_average": [round(x, 2) for x in os.getloadavg()],
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "numpy": np.__version__,
+        "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS"),
+        "opencv": cv2.__version__,
+        "opencv_threads": cv2.getNumThreads(),
+        "open3d": open3d.__version__,
+        "gpu": None,
+    }
+    if device is not None and device.startswith("cuda") and torch.cuda.is_available():
+        idx = torch.device(device).index or 0
+        prop = torch.cuda.get_device_properties(idx)
+        info["gpu"] = f"{prop.name} ({prop.total_memory / 1024**3:.1f} GiB, CUDA {torch.version.cuda})"
+    return info
+
+
+def format_device(info: dict) -> str:
+    lines = [
+        f"device: CPU {info['cpu']} ({info['cpu_cores']} cores available, load average "
+        f"{' '.join(str(x) for x in info['load_average'])})",
+        f"        torch {info['torch']} ({info['torch_threads']} threads), numpy {info['numpy']} "
+        f"(OPENBLAS_NUM_THREADS={info['OPENBLAS_NUM_THREADS']}), OpenCV {info['opencv']} "
+        f"({info['opencv_threads']} threads), Open3D {info['open3d']}, Python {info['python']}",
+    ]
+    if info.get("gpu"):
+        lines.append(f"        GPU {info['gpu']}")
+    lines.append(f"date:   {info['date']}    mode: {info['mode']}")
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------------------
+# Memory meters.
+
+def _malloc_trim() -> None:
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
+def _proc_status_kib(key: str) -> int | None:
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith(key + ":"):
+                    return int(line.split()[1])
+    except OSError:
+        pass
+    return None
+
+
+def _reset_hwm() -> bool:
+    try:
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+        return True
+    except OSError:
+        return False
+
+
+class Meter:
+    """Peak memory of one call: tracemalloc, VmHWM and (on CUDA) the torch allocator."""
+
+    def __init__(self, cuda: bool = False):
+        self.cuda = cuda
+        self.hwm_ok = _reset_hwm()
+
+    @contextlib.contextmanager
+    def measure(self, out: dict):
+        gc.collect()
+        _malloc_trim()
+        if self.cuda:
+            import torch
+
+            torch.cuda.synchronize()
+            torch.cuda.reset_peak_memory_stats()
+        tracemalloc.reset_peak()
+        py0 = tracemalloc.get_traced_memory()[0]
+        rss0 = _proc_status_kib("VmRSS") if self.hwm_ok and _reset_hwm() else None
+        try:
+            yield
+        finally:
+            if self.cuda:
+                import torch
+
+                torch.cuda.synchronize()
+                out["gpu_peak_mib"] = torch.cuda.max_memory_allocated() / MIB
+            out["py_peak_mib"] = max(tracemalloc.get_traced_memory()[1] - py0, 0) / MIB
+            hwm = _proc_status_kib("VmHWM") if rss0 is not None else None
+            out["rss_peak_mib"] = max(hwm - rss0, 0) / 1024.0 if hwm is not None else None
+
+
+# ---------------------------------------------------------------------------------------
+# Instrumenting run_pair.
+
+class Recorder:
+    """Times (and, with a meter, memory) of every wrapped call, grouped by stage."""
+
+    def __init__(self, meter: Meter | None = None, cuda: bool = False):
+        self.meter = meter
+        self.cuda = cuda
+        self.calls: dict[str, list[dict]] = {}
+        self._active: str | None = None
+
+    @contextlib.contextmanager
+    def stage(self, name: str):
+        if self._active is not None:  # a stage inside another one is counted there
+            yield
+            return
+        self._active = name
+        rec: dict = {}
+        mem = self.meter.measure(rec) if self.meter else contextlib.nullcontext()
+        try:
+            with mem:
+                t0 = time.perf_counter()
+                try:
+                    yield
+                finally:
+                    if self.cuda:
+                        import torch
+
+                        torch.cuda.synchronize()
+                    rec["s"] = time.perf_counter() - t0
+        finally:
+            self._active = None
+            self.calls.setdefault(name, []).append(rec)
+
+    def wrap(self, name: str, fn):
+        def wrapped(*args, **kw):
+            with self.stage(name):
+                return fn(*args, **kw)
+
+        wrapped.__wrapped__ = fn
+        return wrapped
+
+
+@contextlib.contextmanager
+def instrumented(rec: Recorder, backend):
+    """Wrap the functions ``pipeline.run_pair`` calls, for the duration of the block."""
+    from freereg_lib import features, geometric, pipeline, pose
+
+    targets = [
+        (pipeline, "depth_view", "projection + densify"),
+        (pipeline, "scene_hints", "stub scene hints"),
+        (backend, "diffusion_rgb", "diffusion RGB"),
+        (backend, "diffusion_depth", "diffusion depth"),
+        (features, "pca_reduce", "PCA + keypoint sampling"),
+        (features, "sample_features", "PCA + keypoint sampling"),
+        (backend, "mono_depth", "monocular depth"),
+        (geometric, "geometric_features", "geometric features"),
+        (geometric, "pixel_features", "geometric features"),
+        (pipeline, "match", "matching"),
+        (pose, "pnp_ransac", "solver PnP-RANSAC"),
+        (pose, "kabsch_ransac", "solver Kabsch-RANSAC"),
+        (pipeline, "evaluate", "metrics"),
+    ]
+    saved = []
+    try:
+        for obj, attr, stage in targets:
+            had_own = attr in vars(obj)
+            saved.append((obj, attr, had_own, getattr(obj, attr)))
+            setattr(obj, attr, rec.wrap(stage, getattr(obj, attr)))
+        yield
+    finally:
+        for obj, attr, had_own, orig in reversed(saved):
+            if had_own:
+                setattr(obj, attr, orig)
+            else:  # a method wrapped on an instance: drop the instance attribute
+                delattr(obj, attr)
+
+
+def run_chain(pair, backend, cfg, variants, rec: Recorder) -> tuple[float, list[dict]]:
+    """One instrumented ``run_pair``; returns its wall time and rows (errors raise)."""
+    from freereg_lib import pipeline
+
+    with instrumented(rec, backend):
+        t0 = time.perf_counter()
+        rows = pipeline.run_pair(pair, backend, cfg, variants)
+        if rec.cuda:
+            import torch
+
+            torch.cuda.synchronize()
+        total = time.perf_counter() - t0
+    errors = [f"{r['method']}/{r['solver']}: {r['error']}" for r in rows if r["error"] and r["n_matches"] == 0]
+    if errors:
+        raise RuntimeError(f"run_pair failed on {pair.name}: " + "; ".join(errors))
+    return total, rows
+
+
+def measure_chain(label: str, pairs, backend, cfg, variants, reps: int, warmup: int,
+                  cuda: bool = False, memory: bool = True) -> dict:
+    """Per-stage times over ``pairs`` x ``reps`` (after ``warmup`` runs) and memory of one run."""
+    for _ in range(warmup):
+        run_chain(pairs[0], backend, cfg, variants, Recorder(cuda=cuda))
+    stage_times: dict[str, list[float]] = {}
+    stage_calls: dict[str, int] = {}
+    totals, last_rows = [], []
+    for pair in pairs:
+        for _ in range(reps):
+            rec = Recorder(cuda=cuda)
+            total, last_rows = run_chain(pair, backend, cfg, variants, rec)
+            totals.append(total)
+            for name, calls in rec.calls.items():
+                stage_times.setdefault(name, []).append(sum(c["s"] for c in calls))
+                stage_calls[name] = len(calls)
+            stage_times.setdefault("other (keypoints, lifting, checks)", []).append(
+                total - sum(sum(c["s"] for c in calls) for calls in rec.calls.values()))
+    mem: dict[str, dict] = {}
+    if memory:
+        tracemalloc.start()
+        try:
+            rec = Recorder(Meter(cuda=cuda), cuda=cuda)
+            run_chain(pairs[0], backend, cfg, variants, rec)
+        finally:
+            tracemalloc.stop()
+        for name, calls in rec.calls.items():
+            mem[name] = {
+                k: max((c[k] for c in calls if c.get(k) is not None), default=None)
+                for k in ("py_peak_mib", "rss_peak_mib", "gpu_peak_mib")
+            }
+    return {
+        "label": label,
+        "backend": getattr(backend, "name", type(backend).__name__),
+        "variants": [list(v) for v in variants],
+        "times": stage_times,
+        "calls": stage_calls,
+        "total": totals,
+        "memory": mem,
+        "rows": [{k: (v if not isinstance(v, float) or np.isfinite(v) else None) for k, v in r.items()}
+                 for r in last_rows],
+    }
+
+
+def measure_calls(label: str, backend, calls: list[tuple[str, object]], reps: int, warmup: int,
+                  cuda: bool = False, memory: bool = True) -> dict:
+    """Stand-alone stages: ``calls`` = [(stage name, zero-argument function)]."""
+    times: dict[str, list[float]] = {}
+    mem: dict[str, dict] = {}
+    for name, fn in calls:
+        for _ in range(warmup):
+            fn()
+        for _ in range(reps):
+            rec = Recorder(cuda=cuda)
+            with rec.stage(name):
+                fn()
+            times.setdefault(name, []).append(rec.calls[name][0]["s"])
+        if memory:
+            tracemalloc.start()
+            try:
+                rec = Recorder(Meter(cuda=cuda), cuda=cuda)
+                with rec.stage(name):
+                    fn()
+            finally:
+                tracemalloc.stop()
+            c = rec.calls[name][0]
+            mem[name] = {k: c.get(k) for k in ("py_peak_mib", "rss_peak_mib", "gpu_peak_mib")}
+    return {"label": label, "backend": getattr(backend, "name", ""), "times": times,
+            "calls": {k: 1 for k in times}, "memory": mem}
+
+
+# ---------------------------------------------------------------------------------------
+# The matching micro-benchmark.
+
+def matching_micro(n: int, dim: int, reps: int, device: str, cuda: bool) -> dict:
+    """Mutual NN of ``n`` x ``n`` unit descriptors of ``dim`` channels (the depth side a noisy
+    permutation of the image side, so about 90 % of the keypoints have a true partner)."""
+    from freereg_lib import matching
+
+    rng = np.random.default_rng(0)
+    a = rng.standard_normal((n, dim)).astype(np.float32)
+    b = a[rng.permutation(n)] + 0.7 * rng.standard_normal((n, dim)).astype(np.float32)
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    name = f"mutual NN {n // 1000}k x {n // 1000}k, C={dim} ({device})" if n >= 1000 else \
+        f"mutual NN {n} x {n}, C={dim} ({device})"
+    out = measure_calls("matching micro-benchmark", None,
+                        [(name, lambda: matching.mutual_nn(a, b, device=device))],
+                        reps=reps, warmup=1, cuda=cuda)
+    out["n_mutual"] = int(len(matching.mutual_nn(a, b, device=device)[0]))
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# Backends.
+
+class _Sanitized:
+    """A backend whose diffusion maps have non-finite values replaced by 0 (random float16
+    weights can overflow; the values do not matter for speed). Counts what it replaced."""
+
+    def __init__(self, inner):
+        self._inner = inner
+        self.nonfinite = 0
+
+    def __getattr__(self, attr):
+        return getattr(self._inner, attr)
+
+    def _clean(self, maps):
+        out = []
+        for m in maps:
+            bad = ~np.isfinite(m)
+            if bad.any():
+                self.nonfinite += int(bad.sum())
+                m = np.where(bad, np.float32(0.0), m)
+            out.append(m)
+        return out
+
+    def diffusion_rgb(self, image, ids=None, xyz=None):
+        return self._clean(self._inner.diffusion_rgb(image))
+
+    def diffusion_depth(self, depth, ids=None, xyz=None):
+        return self._clean(self._inner.diffusion_depth(depth))
+
+    def mono_depth(self, image, depth_gt=None):
+        return self._inner.mono_depth(image)
+
+
+def build_fullsize_backend(cfg, device: str, resize_hw):
+    """A ``tiny``-kind backend whose models are full-size SD v1.5 / ControlNet v1.1 depth /
+    VAE / CLIP text / ZoeD_N with random weights (float16 on CUDA, float32 on the CPU;
+    ZoeDepth always float32, as the library runs it)."""
+    import torch
+    from diffusers import AutoencoderKL, ControlNetModel, UNet2DConditionModel
+    from transformers import BeitConfig, CLIPTextConfig, CLIPTextModel, ZoeDepthConfig, \
+        ZoeDepthForDepthEstimation
+
+    from freereg_lib.backends.diffusion import SD15_UNET_CONFIG, DiffusionFeatures, tiny_tokenizer
+    from freereg_lib.backends.torch_backends import TinyBackend, resolve_device
+    from freereg_lib.backends.zoedepth import ZoeDepthEstimator, _processor_class
+
+    dev, dtype = resolve_device(device)
+    torch.manual_seed(cfg.seed)
+    tok = tiny_tokenizer()  # ids < 514 < 49408: fine for a speed test, no vocabulary file
+    cn_cfg = {k: v for k, v in SD15_UNET_CONFIG.items()
+              if k not in ("out_channels", "up_block_types", "sample_size")}
+    with torch.device(dev), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        unet = UNet2DConditionModel(**SD15_UNET_CONFIG)
+        controlnet = ControlNetModel(**cn_cfg, **CONTROLNET_V11_DEPTH_EXTRA)
+        vae = AutoencoderKL(**SD15_VAE_CONFIG)
+        text = CLIPTextModel(CLIPTextConfig(bos_token_id=0, eos_token_id=1, pad_token_id=1,
+                                            **SD15_TEXT_CONFIG))
+        zoe = ZoeDepthForDepthEstimation(ZoeDepthConfig(backbone_config=BeitConfig(**ZOE_N_BACKBONE),
+                                                        **ZOE_N))
+    mods = [torch.nn.Module.to(m, device=dev, dtype=dtype).eval() for m in (unet, controlnet, vae, text)]
+    diff = DiffusionFeatures(*mods[:3], mods[3], tok, cfg, dev, dtype, resize_hw)
+    be = TinyBackend(cfg, device=str(dev), dtype=dtype, resize_hw=resize_hw)
+    be._diffusion = diff
+    be._zoe = ZoeDepthEstimator(zoe.to(dev).eval(), _processor_class()(), dev)
+    be.name = "full-size random"
+    n_params = {k: sum(p.numel() for p in m.parameters())
+                for k, m in (("unet", unet), ("controlnet", controlnet), ("vae", vae),
+                             ("text", text), ("zoedepth", zoe))}
+    return _Sanitized(be), n_params
+
+
+# ---------------------------------------------------------------------------------------
+# The table.
+
+def _fmt(x, nd=3):
+    if x is None:
+        return "-"
+    if isinstance(x, float):
+        return f"{x:.{nd}f}"
+    return str(x)
+
+
+def _variants(variants) -> str:
+    if [tuple(v) for v in variants] == list(PAPER_VARIANTS):
+        return "FreeReg: PnP + Kabsch"
+    return f"{len(variants)} variants"
+
+
+def _stage_order(names):
+    build = [s for s in names if s.startswith("model build")]
+    known = [s for s in STAGES if s in names]
+    rest = [s for s in names if s not in STAGES and s not in build and not s.startswith("other")]
+    other = [s for s in names if s.startswith("other")]
+    return build + known + rest + other
+
+
+def format_table(results: list[dict], device: str, gpu: bool) -> str:
+    head = ["stage", "backend", "device", "calls", "time median [s]", "min [s]", "max [s]",
+            "py peak [MiB]", "RSS peak [MiB]"]
+    if gpu:
+        head.append("GPU peak [MiB]")
+    rows = []
+    for res in results:
+        dev = res.get("device", device)
+        for name in _stage_order(list(res["times"])):
+            ts = res["times"][name]
+            m = res.get("memory", {}).get(name, {})
+            row = [name, res["backend"], dev, str(res.get("calls", {}).get(name, "")),
+                   _fmt(statistics.median(ts)), _fmt(min(ts)), _fmt(max(ts)),
+                   _fmt(m.get("py_peak_mib"), 1), _fmt(m.get("rss_peak_mib"), 1)]
+            if gpu:
+                row.append(_fmt(m.get("gpu_peak_mib"), 0))
+            rows.append(row)
+        if "total" in res:
+            ts = res["total"]
+            row = [f"END TO END run_pair ({_variants(res['variants'])})",
+                   res["backend"], dev, "", _fmt(statistics.median(ts)), _fmt(min(ts)),
+                   _fmt(max(ts)), "", ""]
+            if gpu:
+                row.append("")
+            rows.append(row)
+        rows.append(None)
+    widths = [max(len(h), *(len(r[i]) for r in rows if r)) for i, h in enumerate(head)]
+    line = "  ".join("-" * w for w in widths)
+
+    def fmt_row(r):
+        return "  ".join(c.ljust(w) if i < 4 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths)))
+
+    out = [fmt_row(head), line]
+    for r in rows:
+        out.append(line if r is None else fmt_row(r))
+    return "\n".join(out[:-1])
+
+
+# ---------------------------------------------------------------------------------------
+# Main.
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--mode", choices=("cpu", "gpu", "ci"), default="cpu")
+    p.add_argument("--pairs", type=int, default=1, help="synthetic indoor pairs (seeds 0..N-1)")
+    p.add_argument("--reps", type=int, default=None,
+                   help="timed repetitions per pair (default: 3 cpu/gpu, 1 ci)")
+    p.add_argument("--warmup", type=int, default=None,
+                   help="untimed warm-up runs before the timed ones (default: 1 cpu/gpu, 0 ci)")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch and OpenCV threads (default: theirs; ci: 1)")
+    p.add_argument("--variants", choices=("paper", "all"), default="paper",
+                   help="paper: FreeReg with PnP and Kabsch; all: the 4 default variants")
+    p.add_argument("--ddim-steps", type=int, default=None, help="override cfg.ddim_steps (gpu: 20)")
+    p.add_argument("--device", default=None, help="gpu mode: the torch device (default cuda)")
+    p.add_argument("--resize", default=None,
+                   help="gpu mode: diffusion input HxW (default 512x704); smaller sizes are "
+                        "for smoke tests only")
+    p.add_argument("--match-n", type=int, default=None,
+                   help="matching micro-benchmark size (default 10000; ci 1000; 0 skips)")
+    p.add_argument("--no-tiny", action="store_true", help="cpu mode: skip the tiny backend")
+    p.add_argument("--json", default=None, help="also write the raw measurements here")
+    return p.parse_args(argv)
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    import torch
+    import cv2
+
+    from freereg_lib import config_for, synthetic
+    from freereg_lib.backends import get_backend
+
+    ci = args.mode == "ci"
+    gpu = args.mode == "gpu"
+    threads = args.threads if args.threads is not None else (1 if ci else None)
+    if threads is not None:
+        torch.set_num_threads(threads)
+        cv2.setNumThreads(threads)
+    reps = args.reps if args.reps is not None else (1 if ci else 3)
+    warmup = args.warmup if args.warmup is not None else (0 if ci else 1)
+    device = args.device or ("cuda" if gpu else "cpu")
+    if gpu and device.startswith("cuda") and not torch.cuda.is_available():
+        print(f"gpu mode: not measured: no GPU (torch {torch.__version__}, "
+              "torch.cuda.is_available() is False). Run it on a CUDA machine, or pass "
+              "--device cpu --resize 64x64 --ddim-steps 1 for a (slow) smoke test of the code path.",
+              file=sys.stderr)
+        return 2
+    cuda = device.startswith("cuda")
+
+    image_size = (96, 128) if ci else (512, 704)
+    overrides = dict(ransac_iters=500, keypoint_grid=(12, 16), ddim_steps=5) if ci else {}
+    if args.ddim_steps is not None:
+        overrides["ddim_steps"] = args.ddim_steps
+    cfg = config_for("synthetic_indoor", **overrides)
+    variants = PAPER_VARIANTS if args.variants == "paper" else None
+    if variants is None:
+        from freereg_lib.pipeline import DEFAULT_VARIANTS
+
+        variants = DEFAULT_VARIANTS
+    info = device_info(args.mode, device)
+    print(format_device(info), flush=True)
+    pairs = [synthetic.make_pair("indoor", seed=s, image_size=image_size) for s in range(max(args.pairs, 1))]
+    print(f"pairs:  {len(pairs)} synthetic indoor, {image_size[0]} x {image_size[1]}, "
+          f"{len(pairs[0].points)} points; RANSAC {cfg.ransac_iters} iterations; "
+          f"keypoint grid {cfg.keypoint_grid[0]} x {cfg.keypoint_grid[1]}; "
+          f"{reps} timed repetition(s) per pair after {warmup} warm-up", flush=True)
+
+    results: list[dict] = []
+    notes: list[str] = []
+
+    # 1. The stub chain (CPU).
+    stub = get_backend("stub", cfg, **({"resize_hw": (128, 192)} if ci else {}))
+    res = measure_chain("stub chain", pairs, stub, cfg, variants, reps, warmup)
+    res["device"] = "cpu"
+    results.append(res)
+    print(f"... stub chain done ({statistics.median(res['total']):.2f} s per pair)", flush=True)
+
+    # 2. The tiny backend's model stages (CPU), or the full-size models (gpu mode).
+    if gpu:
+        rhw = tuple(int(v) for v in args.resize.lower().split("x")) if args.resize else cfg.resize_hw
+        t0 = time.perf_counter()
+        full, n_params = build_fullsize_backend(cfg, device, rhw)
+        build_s = time.perf_counter() - t0
+        notes.append(f"full-size models built in {build_s:.1f} s (random init); parameters: "
+                     + ", ".join(f"{k} {v / 1e6:.0f}M" for k, v in n_params.items())
+                     + f"; diffusion input {rhw[0]} x {rhw[1]}, DDIM {cfg.ddim_steps} steps, "
+                     f"dtype {full.dtype}")
+        res = measure_chain("full-size chain", pairs, full, cfg, variants, reps, warmup, cuda=cuda)
+        res["device"] = device
+        results.append(res)
+        if full.nonfinite:
+            notes.append(f"random float16 weights produced {full.nonfinite} non-finite feature "
+                         "values over all runs; replaced by 0 (speed does not depend on them)")
+        print(f"... full-size chain done ({statistics.median(res['total']):.2f} s per pair)", flush=True)
+    elif not args.no_tiny:
+        from freereg_lib import pipeline
+
+        kw = dict(resize_hw=(64, 64), zoe_input_hw=(32, 48)) if ci else {}
+        tiny = get_backend("tiny", cfg, device="cpu", **kw)
+        pair = pairs[0]
+        view = pipeline.depth_view(pair, cfg)
+        calls = [
+            ("model build (diffusion, once)", lambda: tiny.diffusion),
+            ("model build (ZoeDepth, once)", lambda: tiny.zoe),
+        ]
+        t_build = measure_calls("tiny build", tiny, calls, reps=1, warmup=0, memory=False)
+        calls = [
+            ("diffusion RGB", lambda: tiny.diffusion_rgb(pair.image)),
+            ("diffusion depth", lambda: tiny.diffusion_depth(view.dense)),
+            ("monocular depth", lambda: tiny.mono_depth(pair.image)),
+        ]
+        res = measure_calls("tiny stages", tiny, calls, reps=reps, warmup=warmup)
+        for k in ("times", "calls"):
+            res[k] = {**t_build[k], **res[k]}
+        res["device"] = "cpu"
+        results.append(res)
+        notes.append(f"tiny backend: diffusion input {tiny.resize_hw[0]} x {tiny.resize_hw[1]}, "
+                     f"DDIM {cfg.ddim_steps} steps, random miniature models (numbers are not "
+                     "those of SD v1.5)")
+        print("... tiny stages done", flush=True)
+
+    # 3. Matching micro-benchmark.
+    n = args.match_n if args.match_n is not None else (1000 if ci else 10_000)
+    if n > 0:
+        devs = ["cpu"] + ([device] if cuda else [])
+        for d in devs:
+            res = matching_micro(n, 384 + 33, reps=reps, device=d, cuda=d.startswith("cuda"))
+            res["backend"] = "-"
+            res["device"] = d
+            results.append(res)
+            notes.append(f"mutual NN {n} x {n} on {d}: {res['n_mutual']} mutual pairs")
+        print("... matching micro-benchmark done", flush=True)
+
+    print()
+    print(format_table(results, device, gpu))
+    for note in notes:
+        print(f"note: {note}")
+    chain = results[0]
+    e2e = statistics.median(chain["total"])
+    print(f"stub chain, one pair end to end (run_pair, {_variants(chain['variants'])}): "
+          f"{e2e:.2f} s median (min {min(chain['total']):.2f}, max {max(chain['total']):.2f})")
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump({"device": info, "notes": notes, "results": results}, fh, indent=1, default=str)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
