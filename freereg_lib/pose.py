@@ -123,6 +123,16 @@ def kabsch_ransac(
     return PoseResult(cameras.invert(T_pc_cam), True, "kabsch", "", inliers, scale)
 
 
+def _pnp_methods() -> dict[str, int]:
+    import cv2
+
+    return {"iterative": cv2.SOLVEPNP_ITERATIVE, "ap3p": cv2.SOLVEPNP_AP3P,
+            "epnp": cv2.SOLVEPNP_EPNP, "sqpnp": cv2.SOLVEPNP_SQPNP}
+
+
+PNP_METHODS = _pnp_methods()
+
+
 def pnp_ransac(
     uv: np.ndarray,
     pts_pc: np.ndarray,
@@ -131,9 +141,21 @@ def pnp_ransac(
     iterations: int = 50_000,
     min_matches: int = 8,
     confidence: float = 0.999,
+    method: str = "iterative",
 ) -> PoseResult:
-    """OpenCV ``solvePnPRansac`` on image pixels ``uv (K, 2)`` and cloud points ``pts_pc (K, 3)``."""
+    """OpenCV ``solvePnPRansac`` on image pixels ``uv (K, 2)`` and cloud points ``pts_pc (K, 3)``.
+
+    ``method`` picks OpenCV's minimal solver: ``"iterative"`` (OpenCV's default, the
+    official code's), ``"ap3p"``, ``"epnp"`` or ``"sqpnp"``. With coarse matches few are
+    within 10 px, RANSAC never stops early, and the default runs all 50k iterations
+    (seconds per pair on a CPU); ``"ap3p"`` is several times faster there
+    (``benchmarks/README.md``).
+    """
     import cv2
+
+    flags = PNP_METHODS.get(method)
+    if flags is None:
+        raise ValueError(f"unknown PnP method {method!r}; expected one of {sorted(PNP_METHODS)}")
 
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
     pts_pc = np.asarray(pts_pc, dtype=np.float64).reshape(-1, 3)
@@ -147,7 +169,7 @@ def pnp_ransac(
     try:
         ok, rvec, tvec, inl = cv2.solvePnPRansac(
             pts_pc[rows], uv[rows], np.asarray(K, dtype=np.float64), None,
-            iterationsCount=iterations, reprojectionError=reproj_px, confidence=confidence,
+            iterationsCount=iterations, reprojectionError=reproj_px, confidence=confidence, flags=flags,
         )
     except cv2.error as exc:
         return _failed("pnp", f"OpenCV refused the problem: {str(exc).strip().splitlines()[-1]}")

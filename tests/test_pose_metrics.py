@@ -175,3 +175,19 @@ def test_rows_frame_matches_the_rows_pipeline_writes():
     rows = pipeline.run_pair(synthetic.make_pair("indoor", seed=4), get_backend("stub", cfg), cfg, [("FreeReg", "pnp")])
     assert list(pipeline.rows_frame(rows).columns) == list(rows[0])
     assert list(pipeline.rows_frame([]).columns) == list(rows[0])
+
+
+@pytest.mark.parametrize("method", ["iterative", "ap3p", "epnp", "sqpnp"])
+def test_pnp_methods_recover_pose_with_outliers(method, rng):
+    pair = ICLSample().pair(0, 30)
+    uv = keypoints.grid_keypoints(pair.image_size, (24, 32))
+    _, pts_pc, keep = metrics.true_correspondences(uv, pair.depth_gt, pair.K_image, pair.T_cam_pc)
+    res = pose.pnp_ransac(np.rint(uv[keep]), _corrupt(pts_pc, rng), pair.K_image, method=method)
+    assert res.success
+    re, te = metrics.pose_errors(res.T_cam_pc, pair.T_cam_pc)
+    assert re < 1.0 and te < 0.02
+
+
+def test_pnp_unknown_method_is_a_clear_error():
+    with pytest.raises(ValueError, match="unknown PnP method 'magic'"):
+        pose.pnp_ransac(np.zeros((10, 2)), np.ones((10, 3)), np.eye(3), method="magic")
