@@ -29,6 +29,7 @@ class FreeRegConfig:
     ddim_steps: int = 20
     ddim_eta: float = 1.0
     guidance_w: float = 4.0  # eps = (w + 1) U(c) - w U(c_u)
+    batched_guidance: bool = False  # both guidance branches in one UNet call (a GPU speed-up)
     prompt: str = INDOOR_PROMPT
     negative_prompt: str = NEGATIVE_PROMPT
     layers: tuple[int, ...] = (0, 4, 6)

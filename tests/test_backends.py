@@ -364,3 +364,19 @@ def test_missing_weights_outdoor_and_partial(empty_hf_cache):
     # A broken folder fails on loading with the same error class.
     with pytest.raises(MissingWeightsError, match="Loading failed"):
         be.mono_depth(np.zeros((8, 8, 3), np.uint8))
+
+
+def test_batched_guidance_same_features_half_the_calls(depth):
+    results, calls = {}, {}
+    for batched in (False, True):
+        cfg = FreeRegConfig().override(ddim_steps=5, batched_guidance=batched)
+        be = get_backend("tiny", cfg, device="cpu", resize_hw=(64, 128))
+        unet = CallCounter(be.diffusion.unet)
+        try:
+            results[batched] = be.diffusion_depth(depth)
+        finally:
+            unet.restore()
+        calls[batched] = unet.n
+    assert calls[False] == 9 and calls[True] == 5  # 4 guided steps x 2 (or x 1 batched) + 1
+    for a, b in zip(results[False], results[True]):
+        np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-4)

@@ -339,8 +339,12 @@ class DiffusionFeatures:
             z = self._randn(shape, g)
             for t in sched.timesteps[:n_steps]:
                 tt = self._timestep(t)
-                e_c = self.eps(z, tt, cond, hint)
-                e_u = self.eps(z, tt, uncond, hint)
+                if cfg.batched_guidance:  # one call of batch 2 instead of two of batch 1
+                    e_c, e_u = self.eps(torch.cat([z, z]), tt, torch.cat([cond, uncond]),
+                                        torch.cat([hint, hint])).chunk(2)
+                else:
+                    e_c = self.eps(z, tt, cond, hint)
+                    e_u = self.eps(z, tt, uncond, hint)
                 e = guidance(e_c, e_u, cfg.guidance_w)
                 z = sched.step(e, int(t), z, eta=cfg.ddim_eta,
                                variance_noise=self._randn(shape, g)).prev_sample.to(self.dtype)
