@@ -152,10 +152,12 @@ class PairFeatures:
 def compute_features(
     pair: Pair, backend, cfg: FreeRegConfig, diffusion: bool = True, geometric: bool = True
 ) -> PairFeatures:
-    """Everything the matcher needs for ``pair`` (see :class:`PairFeatures`)."""
+    """Everything the matcher needs for ``pair`` (see :class:`PairFeatures`).
+
+    The pair is validated first (by :func:`depth_view`), so bad input fails before any model runs.
+    """
     from . import features, geometric as geo
 
-    pair.validate()
     view = depth_view(pair, cfg)
     uv_img = keypoints.grid_keypoints(pair.image_size, cfg.keypoint_grid)
     uv_dep = keypoints.grid_keypoints(pair.depth_size, cfg.keypoint_grid)
