@@ -99,24 +99,37 @@ def draw_matches(
 ):
     """Image (left) and depth map (right) with match lines: green correct, red wrong."""
     plt = _plt()
+    canvas = _match_canvas(image, depth_rgb)
+    fig, ax = plt.subplots(figsize=(12, 12 * canvas.shape[0] / canvas.shape[1] + 0.6))
+    ax.imshow(canvas)
+    _match_lines(ax, uv_image, uv_depth, correct, image.shape[1], max_lines, seed)
+    ax.set_title(title)
+    ax.axis("off")
+    fig.tight_layout()
+    return fig
+
+
+
+def _match_canvas(image: np.ndarray, depth_rgb: np.ndarray) -> np.ndarray:
+    """The image (left) and the depth picture (right) side by side, float RGB."""
     h1, w1 = image.shape[:2]
     h2, w2 = depth_rgb.shape[:2]
     canvas = np.zeros((max(h1, h2), w1 + w2, 3))
     canvas[:h1, :w1] = np.asarray(image, dtype=np.float64) / (255.0 if image.dtype == np.uint8 else 1.0)
     canvas[:h2, w1:] = depth_rgb
-    fig, ax = plt.subplots(figsize=(12, 12 * canvas.shape[0] / canvas.shape[1] + 0.6))
-    ax.imshow(canvas)
+    return canvas
+
+
+def _match_lines(ax, uv_image, uv_depth, correct, offset: int, max_lines: int, seed: int) -> None:
+    """Up to ``max_lines`` seeded match lines, green correct and red wrong; depth side shifted by ``offset``."""
+    uv_i = np.asarray(uv_image).reshape(-1, 2)
+    uv_d = np.asarray(uv_depth).reshape(-1, 2)
     rng = np.random.default_rng(seed)
-    n = len(uv_image)
-    show = rng.choice(n, min(n, max_lines), replace=False) if n else np.zeros(0, int)
-    for k in show:
+    n = len(uv_i)
+    for k in (rng.choice(n, min(n, max_lines), replace=False) if n else []):
         ok = True if correct is None else bool(correct[k])
-        ax.plot([uv_image[k, 0], uv_depth[k, 0] + w1], [uv_image[k, 1], uv_depth[k, 1]],
+        ax.plot([uv_i[k, 0], uv_d[k, 0] + offset], [uv_i[k, 1], uv_d[k, 1]],
                 color=(0.1, 0.8, 0.2) if ok else (0.9, 0.15, 0.1), lw=0.6, alpha=0.8)
-    ax.set_title(title)
-    ax.axis("off")
-    fig.tight_layout()
-    return fig
 
 
 def error_curves(errors: dict[str, np.ndarray], xlabel: str, title: str, xmax: float | None = None):
@@ -371,11 +384,7 @@ def match_panels(image: np.ndarray, depth_rgb: np.ndarray, panels: list[dict], s
     up to ``max_lines`` match lines, green correct and red wrong.
     """
     plt = _plt()
-    h1, w1 = image.shape[:2]
-    h2, w2 = depth_rgb.shape[:2]
-    canvas = np.zeros((max(h1, h2), w1 + w2, 3))
-    canvas[:h1, :w1] = np.asarray(image, dtype=np.float64) / (255.0 if image.dtype == np.uint8 else 1.0)
-    canvas[:h2, w1:] = depth_rgb
+    canvas = _match_canvas(image, depth_rgb)
     n = len(panels)
     nrows = int(np.ceil(n / ncols))
     pw = 12.0 / max(ncols, 1) if ncols > 1 else 10.0
@@ -383,16 +392,7 @@ def match_panels(image: np.ndarray, depth_rgb: np.ndarray, panels: list[dict], s
     fig, axes = plt.subplots(nrows, ncols, figsize=(pw * ncols, ph * nrows + 0.4), squeeze=False)
     for ax, panel in zip(axes.ravel(), panels):
         ax.imshow(canvas)
-        uv_i = np.asarray(panel["uv_image"]).reshape(-1, 2)
-        uv_d = np.asarray(panel["uv_depth"]).reshape(-1, 2)
-        correct = panel.get("correct")
-        rng = np.random.default_rng(seed)
-        k = len(uv_i)
-        show = rng.choice(k, min(k, max_lines), replace=False) if k else np.zeros(0, int)
-        for j in show:
-            ok = True if correct is None else bool(correct[j])
-            ax.plot([uv_i[j, 0], uv_d[j, 0] + w1], [uv_i[j, 1], uv_d[j, 1]],
-                    color=(0.1, 0.8, 0.2) if ok else (0.9, 0.15, 0.1), lw=0.6, alpha=0.8)
+        _match_lines(ax, panel["uv_image"], panel["uv_depth"], panel.get("correct"), image.shape[1], max_lines, seed)
         ax.set_title(panel.get("title", ""), fontsize=10)
         ax.axis("off")
     for ax in axes.ravel()[n:]:
