@@ -774,6 +774,17 @@ class _Namespace(dict):
         return value
 
 
+def _parsed_cells(nb):
+    """The syntax tree of every code cell outside the solution cells that parses."""
+    for cell in nb.cells:
+        if cell.cell_type != "code" or _is_solution(cell):
+            continue
+        try:
+            yield ast.parse(_python(cell.source))
+        except SyntaxError:
+            continue
+
+
 def _import_statements(nb) -> dict[str, str]:
     """Every name the notebook's import statements bind (outside solution cells), and the statement."""
     lazy: dict[str, str] = {}
@@ -782,13 +793,7 @@ def _import_statements(nb) -> dict[str, str]:
     for mod in pkgutil.iter_modules(freereg_lib.__path__):
         if mod.name != "assignments":
             lazy[mod.name] = f"from freereg_lib import {mod.name}"
-    for cell in nb.cells:
-        if cell.cell_type != "code" or _is_solution(cell):
-            continue
-        try:
-            tree = ast.parse(_python(cell.source))
-        except SyntaxError:
-            continue
+    for tree in _parsed_cells(nb):
         for node in ast.walk(tree):
             if isinstance(node, ast.Import):
                 for a in node.names:
@@ -862,14 +867,11 @@ def load_functions(path: str | Path, timeout: float = CASE_TIMEOUT_S) -> tuple[d
             for name in names or [f"cell {i}"]:
                 problems[name] = f"its solution cell failed: {_describe(e)}"
     found = {name: ns[name] for name in EXERCISES if callable(dict.get(ns, name))}
-    for name in set(EXERCISES) - set(found):
-        for cell in nb.cells:
-            if cell.cell_type != "code" or _is_solution(cell):
-                continue
-            try:
-                tree = ast.parse(_python(cell.source))
-            except SyntaxError:
-                continue
+    missing = set(EXERCISES) - set(found)
+    # A function defined outside its solution cell (an untagged cell) still counts.
+    trees = list(_parsed_cells(nb)) if missing else []
+    for name in missing:
+        for tree in trees:
             defs = [n for n in tree.body if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef)) and n.name == name]
             if defs:
                 try:
