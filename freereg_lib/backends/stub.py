@@ -129,17 +129,22 @@ class StubBackend(Backend):
             self._emb_cache[key] = v
         return self._emb_cache[key]
 
-    def _pooled_fractions(self, ids: np.ndarray, stride: int):
-        """Class fractions ``(K, h, w)`` of the grid of stride ``stride`` and the class list."""
-        H, W = ids.shape
-        rh, rw = self.resize_hw
-        h, w = rh // stride, rw // stride
-        # Pixel centre in the resized image -> cell (area pooling by pixel centres).
+    def _cells(self, size: tuple[int, int], stride: int) -> tuple[np.ndarray, int, int]:
+        """Cell index ``(H, W)`` of every pixel on the layer grid of ``stride``, and the grid ``h, w``.
+
+        A pixel goes to the cell holding its centre in the resized image (area pooling).
+        """
+        H, W = size
+        h, w = self.resize_hw[0] // stride, self.resize_hw[1] // stride
         rows = np.minimum(((np.arange(H) + 0.5) * h / H).astype(np.int64), h - 1)
         cols = np.minimum(((np.arange(W) + 0.5) * w / W).astype(np.int64), w - 1)
+        return rows[:, None] * w + cols[None, :], h, w
+
+    def _pooled_fractions(self, ids: np.ndarray, stride: int):
+        """Class fractions ``(K, h, w)`` of the grid of stride ``stride`` and the class list."""
+        cell, h, w = self._cells(ids.shape, stride)
         classes, inv = np.unique(ids, return_inverse=True)
-        inv = inv.reshape(H, W)
-        cell = rows[:, None] * w + cols[None, :]
+        inv = inv.reshape(ids.shape)
         counts = np.bincount((inv * (h * w) + cell).ravel(),
                              minlength=len(classes) * h * w).reshape(len(classes), h, w)
         counts = counts.astype(np.float32)
@@ -169,12 +174,8 @@ class StubBackend(Backend):
 
     def _pooled_xyz(self, xyz: np.ndarray, stride: int) -> np.ndarray:
         """Mean scene point ``(3, h, w)`` of each cell of the layer grid (NaN where none)."""
-        H, W = xyz.shape[:2]
-        rh, rw = self.resize_hw
-        h, w = rh // stride, rw // stride
-        rows = np.minimum(((np.arange(H) + 0.5) * h / H).astype(np.int64), h - 1)
-        cols = np.minimum(((np.arange(W) + 0.5) * w / W).astype(np.int64), w - 1)
-        cell = (rows[:, None] * w + cols[None, :]).ravel()
+        cell, h, w = self._cells(xyz.shape[:2], stride)
+        cell = cell.ravel()
         pts = xyz.reshape(-1, 3)
         ok = np.all(np.isfinite(pts), axis=1)
         count = np.bincount(cell[ok], minlength=h * w).astype(np.float64)
