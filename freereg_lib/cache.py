@@ -113,15 +113,57 @@ class CachedBackend:
         k = self.key(method, inputs)
         return self.cache_dir / self.name / method / k[:2] / f"{k}.npz"
 
+    def diffusion_rgb_batch(self, images, hints=None, layers=None) -> list[dict[int, np.ndarray]]:
+        """As the backend's, with the entries of :meth:`diffusion_rgb`: the misses are computed
+        in one batch (all nine layers, so an entry serves any later layer choice)."""
+        return self._cached_batch("diffusion_rgb", images, hints, layers)
+
+    def diffusion_depth_batch(self, depths, hints=None, layers=None) -> list[dict[int, np.ndarray]]:
+        """As :meth:`diffusion_rgb_batch`, with the entries of :meth:`diffusion_depth`."""
+        return self._cached_batch("diffusion_depth", depths, hints, layers)
+
+    def _cached_batch(self, method: str, xs, hints, layers) -> list[dict[int, np.ndarray]]:
+        from .backends.base import _hints, check_layers
+
+        keep = check_layers(layers)
+        hints = _hints(hints, len(xs))
+        paths = [self.path(method, (x, h.get("ids"), h.get("xyz"))) for x, h in zip(xs, hints)]
+        out: list = [None] * len(xs)
+        todo = []
+        for i, path in enumerate(paths):
+            if path.is_file():
+                self.hits += 1
+                out[i] = self._load(path, self.half)
+            else:
+                todo.append(i)
+        if todo:
+            self.misses += len(todo)
+            batch = getattr(self.backend, f"{method}_batch", None)
+            if batch is not None:
+                computed = batch([xs[i] for i in todo], [hints[i] for i in todo], None)
+            else:  # a backend without batches: one call per input
+                computed = [dict(enumerate(getattr(self.backend, method)(xs[i], **hints[i]))) for i in todo]
+            for i, maps in zip(todo, computed):
+                out[i] = self._store(paths[i], [maps[k] for k in sorted(maps)], self.half)
+        return [{k: maps[k] for k in keep} for maps in out]
+
     def _cached(self, method: str, inputs: tuple, compute, half: bool) -> list[np.ndarray]:
         path = self.path(method, inputs)
         if path.is_file():
             self.hits += 1
-            with np.load(path) as f:
-                arrays = [f[f"arr_{i}"] for i in range(len(f.files))]
-            return [a.astype(np.float32) if half else a for a in arrays]
+            return self._load(path, half)
         self.misses += 1
-        arrays = [np.asarray(a) for a in compute()]
+        return self._store(path, compute(), half)
+
+    @staticmethod
+    def _load(path: Path, half: bool) -> list[np.ndarray]:
+        with np.load(path) as f:
+            arrays = [f[f"arr_{i}"] for i in range(len(f.files))]
+        return [a.astype(np.float32) if half else a for a in arrays]
+
+    @staticmethod
+    def _store(path: Path, arrays, half: bool) -> list[np.ndarray]:
+        arrays = [np.asarray(a) for a in arrays]
         stored = [a.astype(np.float16) if half else a for a in arrays]
         if half:  # the first run sees what every later run will read back
             arrays = [a.astype(np.float32) for a in stored]

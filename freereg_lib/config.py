@@ -30,6 +30,7 @@ class FreeRegConfig:
     ddim_eta: float = 1.0
     guidance_w: float = 4.0  # eps = (w + 1) U(c) - w U(c_u)
     batched_guidance: bool = False  # both guidance branches in one UNet call (a GPU speed-up)
+    pair_batch: int = 1  # pairs whose diffusion features run as one batch (a GPU speed-up)
     prompt: str = INDOOR_PROMPT
     negative_prompt: str = NEGATIVE_PROMPT
     layers: tuple[int, ...] = (0, 4, 6)
@@ -50,6 +51,7 @@ class FreeRegConfig:
     # Fusion and matching.
     fusion_w: float = 0.5
     keypoint_grid: tuple[int, int] = (32, 44)
+    match_device: str = "cpu"  # "cuda[:N]" runs the mutual nearest neighbours on a GPU
     # Solvers.
     ransac_iters: int = 50_000
     kabsch_inlier_m: float = 0.2

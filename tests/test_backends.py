@@ -248,7 +248,7 @@ def test_layer0_includes_controlnet_mid_residual(tiny_small):
     finally:
         for h in hooks:
             h.remove()
-    layers = tap.layers()
+    layers = tap.layers()[0]  # the one batch item
     assert mid.abs().max() > 0
     assert np.allclose(layers[0], (store["mid"] + mid)[0].numpy(), atol=1e-6)
     assert not np.allclose(layers[0], store["mid"][0].numpy())

@@ -13,6 +13,8 @@ the one exception for missing weights.
 """
 from __future__ import annotations
 
+from typing import Sequence
+
 import numpy as np
 
 N_LAYERS = 9  # decoder layers 0..8
@@ -80,8 +82,48 @@ class Backend:
         """Metric depth ``(H, W) float64`` of an RGB image, at the image's resolution."""
         raise NotImplementedError
 
+    def diffusion_rgb_batch(self, images: Sequence[np.ndarray], hints: Sequence[dict] | None = None,
+                            layers: Sequence[int] | None = None) -> list[dict[int, np.ndarray]]:
+        """The decoder layers of several images, ``{layer: (C, h, w) float32}`` per image.
+
+        ``hints``: one keyword dict per image for :meth:`diffusion_rgb` (the stub's scene
+        hints; real models ignore them). ``layers``: only these layers (all nine when None);
+        a backend may then stop its network after the last one. This default calls
+        :meth:`diffusion_rgb` per image; the torch backends run the whole list as one batch.
+        """
+        return [_pick(self.diffusion_rgb(im, **h), layers) for im, h in zip(images, _hints(hints, len(images)))]
+
+    def diffusion_depth_batch(self, depths: Sequence[np.ndarray], hints: Sequence[dict] | None = None,
+                              layers: Sequence[int] | None = None) -> list[dict[int, np.ndarray]]:
+        """As :meth:`diffusion_rgb_batch` for depth maps (:meth:`diffusion_depth`)."""
+        return [_pick(self.diffusion_depth(d, **h), layers) for d, h in zip(depths, _hints(hints, len(depths)))]
+
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r}, resize_hw={self.resize_hw})"
+
+
+def check_layers(layers: Sequence[int] | None) -> list[int]:
+    """The sorted, distinct layer indices of ``layers`` (all nine when None); ``ValueError``
+    for an index outside 0..8 or an empty choice."""
+    if layers is None:
+        return list(range(N_LAYERS))
+    chosen = sorted({int(i) for i in layers})
+    if not chosen or chosen[0] < 0 or chosen[-1] >= N_LAYERS:
+        raise ValueError(f"layers must be a non-empty choice among 0..{N_LAYERS - 1}, got {tuple(layers)}")
+    return chosen
+
+
+def _pick(maps, layers: Sequence[int] | None) -> dict[int, np.ndarray]:
+    return {i: maps[i] for i in check_layers(layers)}
+
+
+def _hints(hints: Sequence[dict] | None, n: int) -> list[dict]:
+    if hints is None:
+        return [{}] * n
+    hints = list(hints)
+    if len(hints) != n:
+        raise ValueError(f"got {len(hints)} hint dicts for {n} inputs")
+    return hints
 
 
 def check_device(device) -> None:

@@ -33,6 +33,7 @@ import numpy as np
 from .base import (
     A_PROMPT,
     N_LAYERS,
+    check_layers,
     depth_hint,
     feature_timestep,
     n_guided_steps,
@@ -195,21 +196,28 @@ class DecoderTap:
         self._handles = []
         return False
 
-    def layers(self) -> list[np.ndarray]:
-        missing = [i for i in range(self.n_layers) if i not in self.maps]
+    def layers(self, keep=None) -> list[dict[int, np.ndarray]]:
+        """``{layer: (C, h, w) float32 numpy}`` per batch item, for the ``keep`` layers (all
+        collected ones when None); only these cross to the host, one copy per layer."""
+        keep = range(self.n_layers) if keep is None else keep
+        missing = [i for i in keep if i not in self.maps]
         if missing:
             raise RuntimeError(f"decoder layers {missing} were not produced by the UNet pass")
-        return [self.maps[i][0].float().cpu().numpy() for i in range(self.n_layers)]
+        host = {i: self.maps[i].float().cpu().numpy() for i in keep}
+        batch = len(next(iter(host.values())))
+        return [{i: host[i][b] for i in keep} for b in range(batch)]
 
 
-def run_tapped(unet, *args, **kwargs) -> list[np.ndarray]:
-    """One UNet forward with a :class:`DecoderTap`; returns layers 0..8 as numpy."""
-    with DecoderTap(unet) as tap:
+def run_tapped(unet, *args, layers=None, **kwargs) -> list[dict[int, np.ndarray]]:
+    """One UNet forward with a :class:`DecoderTap` that stops after the last of ``layers``
+    (all nine when None); returns ``{layer: map}`` per batch item as numpy."""
+    keep = check_layers(layers)
+    with DecoderTap(unet, n_layers=keep[-1] + 1) as tap:
         try:
             unet(*args, **kwargs)
         except StopForward:
             pass
-    return tap.layers()
+    return tap.layers(keep)
 
 
 def make_ddim_scheduler():
@@ -304,42 +312,61 @@ class DiffusionFeatures:
         )[0]
 
     # ---- the two branches -------------------------------------------------------------
+    # Every item of a batch gets the noise a single call draws (the same seeded (1, ...)
+    # draws, repeated over the batch), so a batch gives each item the features it gets alone.
     def rgb(self, image: np.ndarray) -> list[np.ndarray]:
         """Nine decoder layers of an RGB image ``(H, W, 3) uint8``."""
+        maps = self.rgb_batch([image])[0]
+        return [maps[i] for i in range(N_LAYERS)]
+
+    def depth(self, depth: np.ndarray) -> list[np.ndarray]:
+        """Nine decoder layers of a depth map ``(H, W)`` (metres, 0 = none)."""
+        maps = self.depth_batch([depth])[0]
+        return [maps[i] for i in range(N_LAYERS)]
+
+    def rgb_batch(self, images, layers=None) -> list[dict[int, np.ndarray]]:
+        """Decoder ``layers`` (all nine when None) of RGB images ``(H, W, 3) uint8``, one VAE
+        and one UNet call for the whole list; ``{layer: (C, h, w) float32}`` per image."""
         import torch
 
         cfg = self.cfg
+        B = len(images)
         t_feat = feature_timestep(cfg.t_hat, cfg.ddim_steps)
-        x = torch.from_numpy(rgb_to_unit(image, self.resize_hw))[None].to(self.device, self.dtype)
+        x = torch.from_numpy(np.stack([rgb_to_unit(im, self.resize_hw) for im in images])).to(self.device, self.dtype)
         cond, _ = self.text_embeddings()
         g = torch.Generator("cpu").manual_seed(seed_from(cfg.seed, "rgb-latent") % (1 << 63))
         with torch.inference_mode():
             post = self.vae.encode(x).latent_dist
-            z = post.mean + post.std * self._randn(post.mean.shape, g)
+            one = (1,) + tuple(post.mean.shape[1:])
+            z = post.mean + post.std * self._randn(one, g)
             z = z * self.vae.config.scaling_factor
-            noise = self._randn(z.shape, g)
+            noise = self._randn(one, g).expand_as(z)
             t = self._timestep(t_feat)
             zt = self.scheduler.add_noise(z, noise, t.cpu()).to(self.dtype)
-            return run_tapped(self.unet, zt, t, encoder_hidden_states=cond, return_dict=False)
+            return run_tapped(self.unet, zt, t, layers=layers, encoder_hidden_states=cond.repeat(B, 1, 1),
+                              return_dict=False)
 
-    def depth(self, depth: np.ndarray) -> list[np.ndarray]:
-        """Nine decoder layers of a depth map ``(H, W)`` (metres, 0 = none)."""
+    def depth_batch(self, depths, layers=None) -> list[dict[int, np.ndarray]]:
+        """Decoder ``layers`` (all nine when None) of depth maps ``(H, W)`` (metres, 0 = none),
+        the DDIM steps of the whole list batched; ``{layer: (C, h, w) float32}`` per map."""
         import torch
 
         cfg = self.cfg
-        hint = torch.from_numpy(depth_hint(depth, self.resize_hw))[None].to(self.device, self.dtype)
+        B = len(depths)
+        hint = torch.from_numpy(np.stack([depth_hint(d, self.resize_hw) for d in depths])).to(self.device, self.dtype)
         cond, uncond = self.text_embeddings()
+        cond, uncond = cond.repeat(B, 1, 1), uncond.repeat(B, 1, 1)
         n_steps = n_guided_steps(cfg.t_hat, cfg.ddim_steps)
         t_feat = feature_timestep(cfg.t_hat, cfg.ddim_steps)
         g = torch.Generator("cpu").manual_seed(seed_from(cfg.seed, "depth-ddim") % (1 << 63))
-        shape = self._latent_shape()
+        one = self._latent_shape()
         sched = make_ddim_scheduler()
         sched.set_timesteps(cfg.ddim_steps)
         with torch.inference_mode():
-            z = self._randn(shape, g)
+            z = self._randn(one, g).repeat(B, 1, 1, 1)
             for t in sched.timesteps[:n_steps]:
                 tt = self._timestep(t)
-                if cfg.batched_guidance:  # one call of batch 2 instead of two of batch 1
+                if cfg.batched_guidance:  # one call of batch 2B instead of two of batch B
                     e_c, e_u = self.eps(torch.cat([z, z]), tt, torch.cat([cond, uncond]),
                                         torch.cat([hint, hint])).chunk(2)
                 else:
@@ -347,14 +374,14 @@ class DiffusionFeatures:
                     e_u = self.eps(z, tt, uncond, hint)
                 e = guidance(e_c, e_u, cfg.guidance_w)
                 z = sched.step(e, int(t), z, eta=cfg.ddim_eta,
-                               variance_noise=self._randn(shape, g)).prev_sample.to(self.dtype)
+                               variance_noise=self._randn(one, g).expand_as(z)).prev_sample.to(self.dtype)
             tt = self._timestep(t_feat)
             down, mid = self.controlnet(
                 z, tt, encoder_hidden_states=cond, controlnet_cond=hint,
                 conditioning_scale=1.0, return_dict=False,
             )
             return run_tapped(
-                self.unet, z, tt, encoder_hidden_states=cond,
+                self.unet, z, tt, layers=layers, encoder_hidden_states=cond,
                 down_block_additional_residuals=down, mid_block_additional_residual=mid,
                 return_dict=False,
             )

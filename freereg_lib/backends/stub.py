@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Backend, LAYER_STRIDES, N_LAYERS, seed_from
+from .base import Backend, LAYER_STRIDES, _hints, check_layers, seed_from
 
 PAPER_CHANNELS = (1280, 1280, 1280, 640)  # layers 0-2, 3-5, 6, 7-8 (Table 2)
 STUB_CHANNELS = (256, 256, 256, 128)  # the stub's default: 5x fewer, still >= 128 for PCA
@@ -185,7 +185,10 @@ class StubBackend(Backend):
         out[:, count == 0] = np.nan
         return out.reshape(3, h, w)
 
-    def _features(self, ids: np.ndarray | None, side: str, xyz: np.ndarray | None = None) -> list[np.ndarray]:
+    def _features(self, ids: np.ndarray | None, side: str, xyz: np.ndarray | None = None,
+                  layers=None) -> dict[int, np.ndarray]:
+        """``{layer: map}`` for ``layers`` (all nine when None); each layer is computed alone
+        (its own seeded noise), so a subset equals the same layers of the full set."""
         if ids is None:
             raise ValueError(
                 "the stub diffusion features need a synthetic scene: pass the per-pixel class-id "
@@ -197,14 +200,14 @@ class StubBackend(Backend):
             raise ValueError(f"ids must be an (H, W) integer map, got shape {ids.shape}")
         ids = ids.astype(np.int64)
         id_key = np.ascontiguousarray(ids.astype(np.int32)).tobytes()
-        out = []
+        out = {}
         frac_cache: dict[int, tuple] = {}
         xyz_cache: dict[int, np.ndarray] = {}
         if xyz is not None:
             xyz = np.asarray(xyz, dtype=np.float64)
             if xyz.shape != ids.shape + (3,):
                 raise ValueError(f"xyz must be (H, W, 3) like ids {ids.shape}, got {xyz.shape}")
-        for layer in range(N_LAYERS):
+        for layer in check_layers(layers):
             stride = LAYER_STRIDES[layer]
             if stride not in frac_cache:
                 frac_cache[stride] = self._pooled_fractions(ids, stride)
@@ -231,20 +234,31 @@ class StubBackend(Backend):
                                                       id_key))
                 signal = signal + (noise / np.sqrt(C)) * rng.standard_normal(
                     (C, h, w), dtype=np.float32)
-            out.append(signal.astype(np.float32, copy=False))
+            out[layer] = signal.astype(np.float32, copy=False)
         return out
 
     def diffusion_rgb(self, image: np.ndarray, ids: np.ndarray | None = None,
                       xyz: np.ndarray | None = None) -> list[np.ndarray]:
-        if ids is not None and image is not None and np.shape(ids) != np.shape(image)[:2]:
-            raise ValueError(f"ids {np.shape(ids)} and image {np.shape(image)[:2]} differ in size")
-        return self._features(ids, "rgb", xyz)
+        return list(self._checked(image, {"ids": ids, "xyz": xyz}, "rgb", None).values())
 
     def diffusion_depth(self, depth: np.ndarray, ids: np.ndarray | None = None,
                         xyz: np.ndarray | None = None) -> list[np.ndarray]:
-        if ids is not None and depth is not None and np.shape(ids) != np.shape(depth):
-            raise ValueError(f"ids {np.shape(ids)} and depth {np.shape(depth)} differ in size")
-        return self._features(ids, "depth", xyz)
+        return list(self._checked(depth, {"ids": ids, "xyz": xyz}, "depth", None).values())
+
+    def diffusion_rgb_batch(self, images, hints=None, layers=None) -> list[dict[int, np.ndarray]]:
+        """Only the chosen ``layers`` are computed (see :meth:`Backend.diffusion_rgb_batch`)."""
+        return [self._checked(im, h, "rgb", layers) for im, h in zip(images, _hints(hints, len(images)))]
+
+    def diffusion_depth_batch(self, depths, hints=None, layers=None) -> list[dict[int, np.ndarray]]:
+        """Only the chosen ``layers`` are computed (see :meth:`Backend.diffusion_depth_batch`)."""
+        return [self._checked(d, h, "depth", layers) for d, h in zip(depths, _hints(hints, len(depths)))]
+
+    def _checked(self, x: np.ndarray, hint: dict, side: str, layers) -> dict[int, np.ndarray]:
+        ids = hint.get("ids")
+        size = np.shape(x)[:2] if side == "rgb" else np.shape(x)
+        if ids is not None and x is not None and np.shape(ids) != size:
+            raise ValueError(f"ids {np.shape(ids)} and {'image' if side == 'rgb' else 'depth'} {size} differ in size")
+        return self._features(ids, side, hint.get("xyz"), layers)
 
     # ---- monocular depth stand-in -------------------------------------------------------
     def mono_depth(self, image: np.ndarray, depth_gt: np.ndarray | None = None) -> np.ndarray:

@@ -87,6 +87,14 @@ class _TorchBackend(Backend):
                         xyz: np.ndarray | None = None) -> list[np.ndarray]:
         return self.diffusion.depth(depth)
 
+    def diffusion_rgb_batch(self, images, hints=None, layers=None) -> list[dict[int, np.ndarray]]:
+        """One batched VAE + UNet pass for all ``images``, stopped after the last of ``layers``."""
+        return self.diffusion.rgb_batch(list(images), layers)
+
+    def diffusion_depth_batch(self, depths, hints=None, layers=None) -> list[dict[int, np.ndarray]]:
+        """The DDIM steps of all ``depths`` batched, stopped after the last of ``layers``."""
+        return self.diffusion.depth_batch(list(depths), layers)
+
     def mono_depth(self, image: np.ndarray, depth_gt: np.ndarray | None = None) -> np.ndarray:
         return self.zoe(image)
 
