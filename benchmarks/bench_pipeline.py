@@ -606,6 +606,9 @@ def parse_args(argv=None):
     p.add_argument("--variants", choices=("paper", "all"), default="paper",
                    help="paper: FreeReg with PnP and Kabsch; all: the 4 default variants")
     p.add_argument("--ddim-steps", type=int, default=None, help="override cfg.ddim_steps (gpu: 20)")
+    p.add_argument("--pnp-method", default=None,
+                   help="cfg.pnp_method: the PnP-RANSAC method of pose.PNP_METHODS (default: the "
+                        "config's, \"iterative\", the paper's; \"usac\" is the CPU speed-up)")
     p.add_argument("--device", default=None, help="gpu mode: the torch device (default cuda)")
     p.add_argument("--resize", default=None,
                    help="gpu mode: diffusion input HxW (default 512x704); smaller sizes are "
@@ -646,6 +649,8 @@ def main(argv=None) -> int:
     overrides = dict(ransac_iters=500, keypoint_grid=(12, 16), ddim_steps=5) if ci else {}
     if args.ddim_steps is not None:
         overrides["ddim_steps"] = args.ddim_steps
+    if args.pnp_method is not None:
+        overrides["pnp_method"] = args.pnp_method
     cfg = config_for("synthetic_indoor", **overrides)
     variants = PAPER_VARIANTS if args.variants == "paper" else None
     if variants is None:
@@ -656,7 +661,7 @@ def main(argv=None) -> int:
     print(format_device(info), flush=True)
     pairs = [synthetic.make_pair("indoor", seed=s, image_size=image_size) for s in range(max(args.pairs, 1))]
     print(f"pairs:  {len(pairs)} synthetic indoor, {image_size[0]} x {image_size[1]}, "
-          f"{len(pairs[0].points)} points; RANSAC {cfg.ransac_iters} iterations; "
+          f"{len(pairs[0].points)} points; RANSAC {cfg.ransac_iters} iterations; PnP method {cfg.pnp_method}; "
           f"keypoint grid {cfg.keypoint_grid[0]} x {cfg.keypoint_grid[1]}; "
           f"{reps} timed repetition(s) per pair after {warmup} warm-up", flush=True)
 

@@ -177,7 +177,7 @@ def test_rows_frame_matches_the_rows_pipeline_writes():
     assert list(pipeline.rows_frame([]).columns) == list(rows[0])
 
 
-@pytest.mark.parametrize("method", ["iterative", "ap3p", "epnp", "sqpnp"])
+@pytest.mark.parametrize("method", ["iterative", "ap3p", "epnp", "sqpnp", "usac", "usac_accurate"])
 def test_pnp_methods_recover_pose_with_outliers(method, rng):
     pair = ICLSample().pair(0, 30)
     uv = keypoints.grid_keypoints(pair.image_size, (24, 32))
@@ -191,3 +191,46 @@ def test_pnp_methods_recover_pose_with_outliers(method, rng):
 def test_pnp_unknown_method_is_a_clear_error():
     with pytest.raises(ValueError, match="unknown PnP method 'magic'"):
         pose.pnp_ransac(np.zeros((10, 2)), np.ones((10, 3)), np.eye(3), method="magic")
+
+
+@pytest.mark.parametrize("method", ["usac", "usac_accurate"])
+def test_usac_methods_map_to_opencv_usac_flags(method):
+    import cv2
+
+    expected = {"usac": cv2.USAC_DEFAULT, "usac_accurate": cv2.USAC_ACCURATE}[method]
+    assert pose.PNP_METHODS[method] == expected
+
+
+@pytest.mark.parametrize("method", ["usac", "usac_accurate"])
+@pytest.mark.parametrize("n", [0, 2, 3, 7])
+def test_usac_with_too_few_matches_fails_without_raising(method, n, rng):
+    # OpenCV's USAC itself raises below 3 points and "succeeds" with 3: the guard must answer first.
+    pts = rng.normal(size=(n, 3)) + [0, 0, 3]
+    res = pose.pnp_ransac(rng.uniform(0, 100, size=(n, 2)), pts, np.eye(3) * [100, 100, 1], method=method)
+    assert not res.success and res.solver == "pnp"
+    assert "PnP-RANSAC needs at least 8" in res.reason
+    assert np.array_equal(res.T_cam_pc, np.eye(4)) and res.n_inliers == 0
+
+
+def test_usac_degenerate_input_is_a_failed_result(rng):
+    # All points identical: OpenCV's USAC finds no model (returns None); collinear points likewise.
+    K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    same = pose.pnp_ransac(np.ones((20, 2)), np.ones((20, 3)), K, method="usac")
+    line = np.linspace(0, 1, 20)[:, None] * [1, 1, 1] + [0, 0, 3]
+    collinear = pose.pnp_ransac(rng.uniform(0, 100, size=(20, 2)), line, K, iterations=1000, method="usac")
+    for res in (same, collinear):
+        assert not res.success and res.reason
+        assert np.array_equal(res.T_cam_pc, np.eye(4))
+
+
+def test_usac_iteration_cap_is_passed_to_opencv():
+    # The cap reaches USAC: one sample cannot find the pose that 50k (early-stopped) samples do.
+    pair = ICLSample().pair(0, 30)
+    uv = keypoints.grid_keypoints(pair.image_size, (24, 32))
+    _, pts_pc, keep = metrics.true_correspondences(uv, pair.depth_gt, pair.K_image, pair.T_cam_pc)
+    noisy = _corrupt(pts_pc, np.random.default_rng(7), fraction=0.8)
+    full = pose.pnp_ransac(np.rint(uv[keep]), noisy, pair.K_image, method="usac")
+    one = pose.pnp_ransac(np.rint(uv[keep]), noisy, pair.K_image, iterations=1, method="usac")
+    assert full.success and full.n_inliers > one.n_inliers
+    re, te = metrics.pose_errors(full.T_cam_pc, pair.T_cam_pc)
+    assert re < 1.0 and te < 0.02
