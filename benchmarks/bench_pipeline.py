@@ -21,8 +21,8 @@ Modes
          the script works, in seconds. Its numbers mean nothing.
 
 Each stage is timed inside ``pipeline.run_pair`` itself: the library functions the pipeline
-calls (``pipeline.depth_view``, the backend's ``diffusion_rgb`` / ``diffusion_depth`` /
-``mono_depth``, ``features.pca_reduce`` + ``sample_features``, ``geometric.geometric_features``
+calls (``pipeline.depth_view``, the backend's ``diffusion_rgb_batch`` /
+``diffusion_depth_batch`` / ``mono_depth``, ``features.pca_reduce`` + ``sample_features``, ``geometric.geometric_features``
 + ``pixel_features``, ``pipeline.match``, ``pose.pnp_ransac``, ``pose.kabsch_ransac``,
 ``pipeline.evaluate``) are wrapped for the duration of the run, so the table measures exactly
 what the pipeline does; "other" is the rest of ``run_pair`` (keypoints, lifting, validation).
@@ -315,8 +315,8 @@ def instrumented(rec: Recorder, backend):
     targets = [
         (pipeline, "depth_view", "projection + densify"),
         (pipeline, "scene_hints", "stub scene hints"),
-        (backend, "diffusion_rgb", "diffusion RGB"),
-        (backend, "diffusion_depth", "diffusion depth"),
+        (backend, "diffusion_rgb_batch", "diffusion RGB"),
+        (backend, "diffusion_depth_batch", "diffusion depth"),
         (features, "pca_reduce", "PCA + keypoint sampling"),
         (features, "sample_features", "PCA + keypoint sampling"),
         (backend, "mono_depth", "monocular depth"),
@@ -431,6 +431,25 @@ def measure_calls(label: str, backend, calls: list[tuple[str, object]], reps: in
             "calls": {k: 1 for k in times}, "memory": mem}
 
 
+def measure_pair_batch(backend, pair, cfg, B: int, reps: int, warmup: int, cuda: bool, device: str) -> dict:
+    """The diffusion stages of ``B`` pairs in one batch (``cfg.pair_batch = B``, the layers of
+    ``cfg.layers``), as ``pipeline.run_pairs`` calls them; times per pair (divided by ``B``)."""
+    from freereg_lib import pipeline
+
+    view = pipeline.depth_view(pair, cfg)
+    name_rgb = f"diffusion RGB, {B} pairs per call (per pair)"
+    name_dep = f"diffusion depth, {B} pairs per call (per pair)"
+    calls = [
+        (name_rgb, lambda: backend.diffusion_rgb_batch([pair.image] * B, None, cfg.layers)),
+        (name_dep, lambda: backend.diffusion_depth_batch([view.dense] * B, None, cfg.layers)),
+    ]
+    res = measure_calls(f"batch of {B}", backend, calls, reps=reps, warmup=warmup, cuda=cuda)
+    res["times"] = {k: [t / B for t in v] for k, v in res["times"].items()}
+    res["device"] = device
+    print(f"... diffusion stages with {B} pairs per call done", flush=True)
+    return res
+
+
 # ---------------------------------------------------------------------------------------
 # The matching micro-benchmark.
 
@@ -482,6 +501,12 @@ class _Sanitized:
 
     def diffusion_depth(self, depth, ids=None, xyz=None):
         return self._clean(self._inner.diffusion_depth(depth))
+
+    def diffusion_rgb_batch(self, images, hints=None, layers=None):
+        return [dict(zip(m, self._clean(m.values()))) for m in self._inner.diffusion_rgb_batch(images, None, layers)]
+
+    def diffusion_depth_batch(self, depths, hints=None, layers=None):
+        return [dict(zip(m, self._clean(m.values()))) for m in self._inner.diffusion_depth_batch(depths, None, layers)]
 
     def mono_depth(self, image, depth_gt=None):
         return self._inner.mono_depth(image)
@@ -609,6 +634,11 @@ def parse_args(argv=None):
     p.add_argument("--pnp-method", default=None,
                    help="cfg.pnp_method: the PnP-RANSAC method of pose.PNP_METHODS (default: the "
                         "config's, \"iterative\", the paper's; \"usac\" is the CPU speed-up)")
+    p.add_argument("--batched-guidance", action="store_true",
+                   help="cfg.batched_guidance: both guidance branches in one UNet call")
+    p.add_argument("--pair-batch", type=int, default=1,
+                   help="also time the diffusion stages on B copies of a pair in one call "
+                        "(cfg.pair_batch = B), reported per pair (time / B)")
     p.add_argument("--device", default=None, help="gpu mode: the torch device (default cuda)")
     p.add_argument("--resize", default=None,
                    help="gpu mode: diffusion input HxW (default 512x704); smaller sizes are "
@@ -651,6 +681,8 @@ def main(argv=None) -> int:
         overrides["ddim_steps"] = args.ddim_steps
     if args.pnp_method is not None:
         overrides["pnp_method"] = args.pnp_method
+    if args.batched_guidance:
+        overrides["batched_guidance"] = True
     cfg = config_for("synthetic_indoor", **overrides)
     variants = PAPER_VARIANTS if args.variants == "paper" else None
     if variants is None:
@@ -662,6 +694,7 @@ def main(argv=None) -> int:
     pairs = [synthetic.make_pair("indoor", seed=s, image_size=image_size) for s in range(max(args.pairs, 1))]
     print(f"pairs:  {len(pairs)} synthetic indoor, {image_size[0]} x {image_size[1]}, "
           f"{len(pairs[0].points)} points; RANSAC {cfg.ransac_iters} iterations; PnP method {cfg.pnp_method}; "
+          f"batched guidance {cfg.batched_guidance}; "
           f"keypoint grid {cfg.keypoint_grid[0]} x {cfg.keypoint_grid[1]}; "
           f"{reps} timed repetition(s) per pair after {warmup} warm-up", flush=True)
 
@@ -692,6 +725,8 @@ def main(argv=None) -> int:
             notes.append(f"random float16 weights produced {full.nonfinite} non-finite feature "
                          "values over all runs; replaced by 0 (speed does not depend on them)")
         print(f"... full-size chain done ({statistics.median(res['total']):.2f} s per pair)", flush=True)
+        if args.pair_batch > 1:
+            results.append(measure_pair_batch(full, pairs[0], cfg, args.pair_batch, reps, warmup, cuda, device))
     elif not args.no_tiny:
         from freereg_lib import pipeline
 
@@ -705,8 +740,9 @@ def main(argv=None) -> int:
         ]
         t_build = measure_calls("tiny build", tiny, calls, reps=1, warmup=0, memory=False)
         calls = [
-            ("diffusion RGB", lambda: tiny.diffusion_rgb(pair.image)),
-            ("diffusion depth", lambda: tiny.diffusion_depth(view.dense)),
+            # As run_pair calls them: a batch of one pair, the layers of cfg.layers.
+            ("diffusion RGB", lambda: tiny.diffusion_rgb_batch([pair.image], None, cfg.layers)),
+            ("diffusion depth", lambda: tiny.diffusion_depth_batch([view.dense], None, cfg.layers)),
             ("monocular depth", lambda: tiny.mono_depth(pair.image)),
         ]
         res = measure_calls("tiny stages", tiny, calls, reps=reps, warmup=warmup)
@@ -714,6 +750,8 @@ def main(argv=None) -> int:
             res[k] = {**t_build[k], **res[k]}
         res["device"] = "cpu"
         results.append(res)
+        if args.pair_batch > 1:
+            results.append(measure_pair_batch(tiny, pair, cfg, args.pair_batch, reps, warmup, False, "cpu"))
         notes.append(f"tiny backend: diffusion input {tiny.resize_hw[0]} x {tiny.resize_hw[1]}, "
                      f"DDIM {cfg.ddim_steps} steps, random miniature models (numbers are not "
                      "those of SD v1.5)")

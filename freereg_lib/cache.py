@@ -94,6 +94,11 @@ class CachedBackend:
         return self._cached("mono_depth", (image, depth_gt),
                             lambda: [self.backend.mono_depth(image, depth_gt=depth_gt)], False)[0]
 
+    def mono_depth_batch(self, images, depth_gts=None) -> list[np.ndarray]:
+        """:meth:`mono_depth` per image (each its own cache entry)."""
+        gts = [None] * len(images) if depth_gts is None else list(depth_gts)
+        return [self.mono_depth(im, depth_gt=gt) for im, gt in zip(images, gts)]
+
     def key(self, method: str, inputs: tuple) -> str:
         """The cache key of ``method`` on ``inputs`` (arrays or None), a hex SHA-256."""
         h = hashlib.sha256()

@@ -164,13 +164,13 @@ class PairFeatures:
 
 def compute_features(
     pair: Pair, backend, cfg: FreeRegConfig, diffusion: bool = True, geometric: bool = True,
-    view: DepthView | None = None, maps: tuple[dict, dict] | None = None,
+    view: DepthView | None = None, maps: tuple[dict, dict] | None = None, mono: np.ndarray | None = None,
 ) -> PairFeatures:
     """Everything the matcher needs for ``pair`` (see :class:`PairFeatures`).
 
     The pair is validated first (by :func:`depth_view`), so bad input fails before any model
-    runs. ``view`` and ``maps`` (the pair's :func:`depth_view` and its entry of
-    :func:`diffusion_maps_batch` for ``cfg.layers``) skip those steps when already done.
+    runs. ``view``, ``maps`` (the pair's entry of :func:`diffusion_maps_batch` for
+    ``cfg.layers``) and ``mono`` (its monocular depth) skip those steps when already done.
     """
     from . import features, geometric as geo
 
@@ -190,7 +190,9 @@ def compute_features(
         )
     pts_dep = cameras.transform(pair.T_pc_sensor, cameras.lift(uv_dep, z_dep, pair.K_depth))
 
-    mono = np.asarray(backend.mono_depth(pair.image, depth_gt=pair.depth_gt), dtype=np.float64)
+    if mono is None:
+        mono = backend.mono_depth(pair.image, depth_gt=pair.depth_gt)
+    mono = np.asarray(mono, dtype=np.float64)
     z_img = cameras.nearest_sample(mono, uv_img)
     z_img = np.where((z_img > cfg.depth_min) & (z_img < cfg.depth_max), z_img, np.nan)
     pts_img = cameras.lift(uv_img, z_img, pair.K_image)
@@ -216,7 +218,8 @@ def compute_features(
 def compute_features_batch(
     pairs: list[Pair], backend, cfg: FreeRegConfig, diffusion: bool = True, geometric: bool = True
 ) -> list[PairFeatures | Exception]:
-    """:func:`compute_features` for several pairs, the diffusion models batched over them.
+    """:func:`compute_features` for several pairs, the diffusion models and the monocular
+    depth model batched over them.
 
     A pair that fails gets its exception in its place and the others go on. When the batched
     model call itself fails (out of GPU memory, say), each pair is run alone.
@@ -228,20 +231,30 @@ def compute_features_batch(
             views[i] = depth_view(pair, cfg)
         except Exception as exc:
             out[i] = exc
-    maps: dict[int, tuple[dict, dict]] = {}
-    if diffusion and len(views) > 1:
-        idx = list(views)
-        try:
-            maps = dict(zip(idx, diffusion_maps_batch([pairs[i] for i in idx], [views[i] for i in idx],
-                                                      backend, cfg.layers)))
-        except Exception:  # each pair alone below, so the failure lands on the pair(s) causing it
-            maps = {}
+    idx = list(views)
+    maps = _batched(lambda: diffusion_maps_batch([pairs[i] for i in idx], [views[i] for i in idx], backend,
+                                                  cfg.layers), idx, diffusion)
+    monos = _batched(lambda: backend.mono_depth_batch([pairs[i].image for i in idx],
+                                                      [pairs[i].depth_gt for i in idx]), idx, True)
     for i, view in views.items():
         try:
-            out[i] = compute_features(pairs[i], backend, cfg, diffusion, geometric, view=view, maps=maps.get(i))
+            out[i] = compute_features(pairs[i], backend, cfg, diffusion, geometric, view=view, maps=maps.get(i),
+                                      mono=monos.get(i))
         except Exception as exc:
             out[i] = exc
     return out
+
+
+def _batched(compute, idx: list[int], wanted: bool) -> dict:
+    """``{pair index: result}`` of one batched call over ``idx``; empty when not wanted, for a
+    single pair, or when the call fails (each pair then runs alone, so the failure lands on
+    the pair that causes it)."""
+    if not wanted or len(idx) < 2:
+        return {}
+    try:
+        return dict(zip(idx, compute()))
+    except Exception:
+        return {}
 
 
 @dataclass

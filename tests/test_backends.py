@@ -291,13 +291,16 @@ def test_sd15_full_config_layer_shapes_table2():
 # ---------------------------------------------------------------------------------------
 # ZoeDepth, devices, weights.
 
-def test_tiny_zoedepth_returns_input_size(tiny):
+def test_tiny_zoedepth_returns_input_size(tiny, image):
     rng = np.random.default_rng(3)
     for H, W in [(48, 64), (75, 50)]:
         img = (rng.random((H, W, 3)) * 255).astype(np.uint8)
         d = tiny.mono_depth(img)
         assert d.shape == (H, W) and d.dtype == np.float64
         assert np.isfinite(d).all() and (d >= 0).all() and d.max() > 0
+        assert d.std() > 1e-4  # a depth map, not one constant
+    # It depends on the image (a random-init ZoeDepth can collapse to a constant).
+    assert np.abs(tiny.mono_depth(image) - tiny.mono_depth(255 - image)).max() > 1e-3
 
 
 def test_cuda_request_without_cuda_is_a_clear_error():

@@ -163,6 +163,16 @@ def test_tiny_features_of_a_batch_match_single_pairs(tiny, pairs):
         alone = pipeline.compute_features(pair, tiny, CFG, geometric=False)
         np.testing.assert_allclose(feats.diff_image, alone.diff_image, atol=1e-3)
         np.testing.assert_allclose(feats.diff_depth, alone.diff_depth, atol=1e-3)
+        np.testing.assert_allclose(feats.mono_depth, alone.mono_depth, rtol=1e-4)
+
+
+def test_tiny_zoedepth_batch_equals_single_calls(tiny, inputs):
+    images = [*inputs[0][:2], inputs[0][2][:40, :50]]  # two sizes: two model calls
+    batch = tiny.mono_depth_batch(images)
+    assert [d.shape for d in batch] == [(48, 64), (48, 64), (40, 50)]
+    for img, d in zip(images, batch):
+        np.testing.assert_allclose(d, tiny.mono_depth(img), rtol=1e-4, atol=1e-6)
+    assert not np.allclose(batch[0], batch[1])
 
 
 def test_cache_serves_batches_and_computes_only_the_misses(tmp_path, inputs):

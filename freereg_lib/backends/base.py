@@ -98,6 +98,13 @@ class Backend:
         """As :meth:`diffusion_rgb_batch` for depth maps (:meth:`diffusion_depth`)."""
         return [_pick(self.diffusion_depth(d, **h), layers) for d, h in zip(depths, _hints(hints, len(depths)))]
 
+    def mono_depth_batch(self, images: Sequence[np.ndarray],
+                         depth_gts: Sequence[np.ndarray | None] | None = None) -> list[np.ndarray]:
+        """:meth:`mono_depth` of several images (``depth_gts``: the stub's true depths); this
+        default calls it per image, the torch backends batch the model."""
+        gts = [None] * len(images) if depth_gts is None else list(depth_gts)
+        return [self.mono_depth(im, depth_gt=gt) for im, gt in zip(images, gts)]
+
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r}, resize_hw={self.resize_hw})"
 

@@ -98,6 +98,10 @@ class _TorchBackend(Backend):
     def mono_depth(self, image: np.ndarray, depth_gt: np.ndarray | None = None) -> np.ndarray:
         return self.zoe(image)
 
+    def mono_depth_batch(self, images, depth_gts=None) -> list[np.ndarray]:
+        """ZoeDepth on all ``images``, same-size images (and their flips) in one call."""
+        return self.zoe.batch(list(images))
+
 
 class TinyBackend(_TorchBackend):
     """The real architectures (diffusers UNet, ControlNet, VAE, CLIP text; transformers

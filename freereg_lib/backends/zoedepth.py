@@ -79,30 +79,43 @@ class ZoeDepthEstimator:
         self.flip = flip
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
+        return self.batch([image])[0]
+
+    def batch(self, images) -> list[np.ndarray]:
+        """Metric depth of several images. Images of one size share one model call, their
+        flips included (a batch of 2B), which gives the single-image result up to rounding."""
         import torch
         import torch.nn.functional as F
 
-        img = np.asarray(image)
-        if img.ndim != 3 or img.shape[2] != 3:
-            raise ValueError(f"image must be (H, W, 3) RGB, got shape {img.shape}")
-        H, W = img.shape[:2]
-        pv = self.processor(images=img, return_tensors="pt")["pixel_values"]
-        pv = pv.to(self.device, torch.float32)
-        with torch.inference_mode():
-            pred = self.model(pixel_values=pv).predicted_depth
-            if self.flip:
-                pred_f = self.model(pixel_values=torch.flip(pv, dims=[3])).predicted_depth
-                pred = (pred + torch.flip(pred_f, dims=[-1])) / 2
-            d = pred[:, None].float()  # (1, 1, h, w)
-            pad_h = pad_w = 0
-            if getattr(self.processor, "do_pad", True):
-                pad_h = int(math.sqrt(H / 2) * 3)
-                pad_w = int(math.sqrt(W / 2) * 3)
-            d = F.interpolate(d, size=(H + 2 * pad_h, W + 2 * pad_w), mode="bicubic",
-                              align_corners=False)
-            d = d[:, :, pad_h:pad_h + H, pad_w:pad_w + W]
-        out = d[0, 0].cpu().numpy().astype(np.float64)
-        return np.clip(out, 0.0, None)
+        imgs = [np.asarray(im) for im in images]
+        for img in imgs:
+            if img.ndim != 3 or img.shape[2] != 3:
+                raise ValueError(f"image must be (H, W, 3) RGB, got shape {img.shape}")
+        groups: dict[tuple, list[int]] = {}
+        for i, img in enumerate(imgs):
+            groups.setdefault(img.shape, []).append(i)
+        out: list = [None] * len(imgs)
+        for (H, W, _), idx in groups.items():
+            pv = self.processor(images=[imgs[i] for i in idx], return_tensors="pt")["pixel_values"]
+            pv = pv.to(self.device, torch.float32)
+            B = len(idx)
+            with torch.inference_mode():
+                x = torch.cat([pv, torch.flip(pv, dims=[3])]) if self.flip else pv
+                pred = self.model(pixel_values=x).predicted_depth
+                if self.flip:
+                    pred = (pred[:B] + torch.flip(pred[B:], dims=[-1])) / 2
+                d = pred[:, None].float()  # (B, 1, h, w)
+                pad_h = pad_w = 0
+                if getattr(self.processor, "do_pad", True):
+                    pad_h = int(math.sqrt(H / 2) * 3)
+                    pad_w = int(math.sqrt(W / 2) * 3)
+                d = F.interpolate(d, size=(H + 2 * pad_h, W + 2 * pad_w), mode="bicubic",
+                                  align_corners=False)
+                d = d[:, 0, pad_h:pad_h + H, pad_w:pad_w + W]
+            host = d.cpu().numpy().astype(np.float64)
+            for k, i in enumerate(idx):
+                out[i] = np.clip(host[k], 0.0, None)
+        return out
 
 
 def build_tiny_zoedepth(device, seed: int = 0, input_hw=TINY_INPUT_HW) -> ZoeDepthEstimator:
@@ -112,7 +125,16 @@ def build_tiny_zoedepth(device, seed: int = 0, input_hw=TINY_INPUT_HW) -> ZoeDep
 
     torch.manual_seed(seed)
     cfg = ZoeDepthConfig(backbone_config=BeitConfig(**TINY_BACKBONE), **TINY_ZOE)
-    model = ZoeDepthForDepthEstimation(cfg).to(device).eval()
+    model = ZoeDepthForDepthEstimation(cfg)
+    # With transformers' default init (std 0.02) the signal vanishes in the small neck and
+    # every image gets the same depth (softplus(0) = ln 2 everywhere); Kaiming weights in
+    # the neck and heads keep the output dependent on the image.
+    with torch.no_grad():
+        for name, mod in model.named_modules():
+            if not name.startswith("backbone") and isinstance(mod, (torch.nn.Conv2d, torch.nn.ConvTranspose2d,
+                                                                    torch.nn.Linear)):
+                torch.nn.init.kaiming_normal_(mod.weight, nonlinearity="relu")
+    model = model.to(device).eval()
     proc = _processor_class()(
         size={"height": int(input_hw[0]), "width": int(input_hw[1])},
         keep_aspect_ratio=True,
