@@ -364,8 +364,13 @@ class DiffusionFeatures:
         sched.set_timesteps(cfg.ddim_steps)
         with torch.inference_mode():
             z = self._randn(one, g).repeat(B, 1, 1, 1)
-            for t in sched.timesteps[:n_steps]:
-                tt = self._timestep(t)
+            # Every step's noise drawn up front, in the order the steps use it, and the
+            # timesteps made once: one host-to-device copy each instead of one per step.
+            step_noise = torch.cat([torch.randn(one, generator=g, dtype=torch.float32) for _ in range(n_steps)])
+            step_noise = step_noise.to(self.device, self.dtype)
+            timesteps = sched.timesteps[:n_steps].to(self.device)
+            for i, t in enumerate(sched.timesteps[:n_steps].tolist()):
+                tt = timesteps[i:i + 1]
                 if cfg.batched_guidance:  # one call of batch 2B instead of two of batch B
                     e_c, e_u = self.eps(torch.cat([z, z]), tt, torch.cat([cond, uncond]),
                                         torch.cat([hint, hint])).chunk(2)
@@ -373,8 +378,8 @@ class DiffusionFeatures:
                     e_c = self.eps(z, tt, cond, hint)
                     e_u = self.eps(z, tt, uncond, hint)
                 e = guidance(e_c, e_u, cfg.guidance_w)
-                z = sched.step(e, int(t), z, eta=cfg.ddim_eta,
-                               variance_noise=self._randn(one, g).expand_as(z)).prev_sample.to(self.dtype)
+                z = sched.step(e, t, z, eta=cfg.ddim_eta,
+                               variance_noise=step_noise[i:i + 1].expand_as(z)).prev_sample.to(self.dtype)
             tt = self._timestep(t_feat)
             down, mid = self.controlnet(
                 z, tt, encoder_hidden_states=cond, controlnet_cond=hint,
