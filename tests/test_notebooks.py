@@ -55,7 +55,10 @@ RUNS = {
         params={"seed": 1, "n_pairs": 2},
         knobs={"weights": [1.0, 0.5, 0.0], "ransac_iters": 5000},
     ),
-    "04_benchmark": dict(params={"dataset": "icl", "seed": 1, "n_pairs": 2}, knobs={"ransac_iters": 5000}),
+    # Two pairs in one batch and the USAC PnP, through config_overrides.
+    "04_benchmark": dict(params={"dataset": "icl", "seed": 1, "n_pairs": 2,
+                                 "config_overrides": {"pair_batch": 2, "pnp_method": "usac"}},
+                         knobs={"ransac_iters": 5000}),
     # The outdoor scenes, compared with KITTI-DC, through the feature cache.
     "04_benchmark-outdoor-cached": dict(
         params={"dataset": "synthetic_outdoor", "seed": 2, "n_pairs": 1, "cache_dir": "<tmp>/cache"},
