@@ -636,6 +636,10 @@ def parse_args(argv=None):
                         "config's, \"iterative\", the paper's; \"usac\" is the CPU speed-up)")
     p.add_argument("--batched-guidance", action="store_true",
                    help="cfg.batched_guidance: both guidance branches in one UNet call")
+    p.add_argument("--pca-device", default=None,
+                   help="cfg.pca_device: the PCA in float32 torch on this device (e.g. cuda)")
+    p.add_argument("--match-device", default=None,
+                   help="cfg.match_device: the pipeline's mutual NN on this device (e.g. cuda)")
     p.add_argument("--pair-batch", type=int, default=1,
                    help="also time the diffusion stages on B copies of a pair in one call "
                         "(cfg.pair_batch = B), reported per pair (time / B)")
@@ -683,6 +687,10 @@ def main(argv=None) -> int:
         overrides["pnp_method"] = args.pnp_method
     if args.batched_guidance:
         overrides["batched_guidance"] = True
+    if args.pca_device is not None:
+        overrides["pca_device"] = args.pca_device
+    if args.match_device is not None:
+        overrides["match_device"] = args.match_device
     cfg = config_for("synthetic_indoor", **overrides)
     variants = PAPER_VARIANTS if args.variants == "paper" else None
     if variants is None:
@@ -694,7 +702,8 @@ def main(argv=None) -> int:
     pairs = [synthetic.make_pair("indoor", seed=s, image_size=image_size) for s in range(max(args.pairs, 1))]
     print(f"pairs:  {len(pairs)} synthetic indoor, {image_size[0]} x {image_size[1]}, "
           f"{len(pairs[0].points)} points; RANSAC {cfg.ransac_iters} iterations; PnP method {cfg.pnp_method}; "
-          f"batched guidance {cfg.batched_guidance}; "
+          f"batched guidance {cfg.batched_guidance}; PCA on {cfg.pca_device or 'host (NumPy)'}; "
+          f"matching on {cfg.match_device}; "
           f"keypoint grid {cfg.keypoint_grid[0]} x {cfg.keypoint_grid[1]}; "
           f"{reps} timed repetition(s) per pair after {warmup} warm-up", flush=True)
 

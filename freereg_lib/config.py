@@ -35,6 +35,7 @@ class FreeRegConfig:
     negative_prompt: str = NEGATIVE_PROMPT
     layers: tuple[int, ...] = (0, 4, 6)
     pca_dim: int = 128
+    pca_device: str | None = None  # None: float64 NumPy on the host; "cuda": float32 on the GPU
     seed: int = 0
     # Depth handling.
     densify: str = "fast"  # "fast" | "multiscale" | "none"

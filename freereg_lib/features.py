@@ -86,9 +86,37 @@ def _pca_project(X: np.ndarray, k: int) -> np.ndarray:
     return P
 
 
+def _pca_project_torch(X: np.ndarray, k: int, device: str) -> np.ndarray:
+    """:func:`_pca_project` in float32 torch on ``device`` (a GPU's eigensolver instead of the
+    host's); the same scores up to float32 rounding, same sign rule, same rank cut (at float32's
+    resolution, 1e-6)."""
+    import torch
+
+    Xt = torch.from_numpy(np.ascontiguousarray(X, dtype=np.float32)).to(device)
+    N, C = Xt.shape
+    Xc = Xt - Xt.mean(dim=0, keepdim=True)
+    if N < C:
+        lam, U = torch.linalg.eigh(Xc @ Xc.T)
+        lam, U = lam.flip(0)[:k], U.flip(1)[:, :k]
+        P = U * lam.clamp(min=0).sqrt()
+        lam = lam / N
+    else:
+        lam, V = torch.linalg.eigh((Xc.T @ Xc) / N)
+        lam, V = lam.flip(0)[:k], V.flip(1)[:, :k]
+        P = Xc @ V
+    if lam.numel():
+        P[:, lam < 1e-6 * lam[0].clamp(min=1e-30)] = 0.0
+    if P.numel():
+        idx = P.abs().argmax(dim=0)
+        signs = torch.sign(P[idx, torch.arange(P.shape[1], device=P.device)])
+        signs[signs == 0] = 1.0
+        P = P * signs
+    return P.double().cpu().numpy()
+
+
 def pca_reduce(maps_src: Sequence[np.ndarray], maps_tgt: Sequence[np.ndarray],
                layers: Sequence[int] = (0, 4, 6), dim: int = 128,
-               normalize: bool = True) -> tuple[np.ndarray, np.ndarray]:
+               normalize: bool = True, device: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Per-layer joint PCA of a pair's decoder maps, resized and concatenated.
 
     Args:
@@ -100,6 +128,9 @@ def pca_reduce(maps_src: Sequence[np.ndarray], maps_tgt: Sequence[np.ndarray],
             the output then has fewer than ``dim * len(layers)`` channels.
         normalize: L2-normalise the concatenated map per pixel (the paper's final step;
             sampled features are re-normalised by :func:`fuse` anyway).
+        device: None (the reference): float64 NumPy on the host. ``"cuda"`` (or ``"cpu"``):
+            the PCA in float32 torch on that device, equal up to float32 rounding
+            (``cfg.pca_device``, a GPU speed-up).
 
     Returns:
         ``(F_src, F_tgt)``, each ``(C_total, h, w) float32`` where ``(h, w)`` is that side's
@@ -121,7 +152,7 @@ def pca_reduce(maps_src: Sequence[np.ndarray], maps_tgt: Sequence[np.ndarray],
         X = np.concatenate([Xs, Xt], axis=0)
         X = X / np.maximum(np.linalg.norm(X, axis=1, keepdims=True), 1e-12)
         k = int(min(dim, C, X.shape[0]))
-        P = _pca_project(X, k)
+        P = _pca_project(X, k) if device is None else _pca_project_torch(X, k, str(device))
         ns = Xs.shape[0]
         red_s.append(P[:ns].T.reshape(k, *S.shape[1:]))
         red_t.append(P[ns:].T.reshape(k, *T.shape[1:]))

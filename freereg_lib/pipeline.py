@@ -200,7 +200,7 @@ def compute_features(
     diff_img = diff_dep = geo_img = geo_dep = None
     if diffusion:
         maps_img, maps_dep = maps or diffusion_maps_batch([pair], [view], backend, cfg.layers)[0]
-        f_img, f_dep = features.pca_reduce(maps_img, maps_dep, cfg.layers, cfg.pca_dim)
+        f_img, f_dep = features.pca_reduce(maps_img, maps_dep, cfg.layers, cfg.pca_dim, device=cfg.pca_device)
         diff_img = features.sample_features(f_img, uv_img, pair.image_size)
         diff_dep = features.sample_features(f_dep, uv_dep, pair.depth_size)
     if geometric:

@@ -70,6 +70,28 @@ def test_pca_is_one_joint_basis(channels, size):
     assert abs(fs[0].mean() - ft[0].mean()) > 0.1
 
 
+@pytest.mark.parametrize("channels,size", [(256, (8, 11)), (64, (32, 44))])
+def test_pca_on_a_torch_device_equals_the_numpy_reference(channels, size):
+    """cfg.pca_device: float32 torch (run here on the CPU; on a GPU in use) gives the float64
+    NumPy maps up to float32 rounding, with the same signs and order, on both paths."""
+    pytest.importorskip("torch")
+    rng = np.random.default_rng(4)
+    S = rng.standard_normal((channels, *size))
+    T = rng.standard_normal((channels, *size)) + 0.5
+    ref = pca_reduce({0: S, 4: S[:, ::2, ::2]}, {0: T, 4: T[:, ::2, ::2]}, layers=(0, 4), dim=16)
+    got = pca_reduce({0: S, 4: S[:, ::2, ::2]}, {0: T, 4: T[:, ::2, ::2]}, layers=(0, 4), dim=16, device="cpu")
+    for r, g in zip(ref, got):
+        assert r.shape == g.shape and g.dtype == np.float32
+        np.testing.assert_allclose(g, r, atol=2e-4)
+    # Rank-deficient data: the components beyond the rank are zero in both.
+    low = rng.standard_normal((40, 3)) @ rng.standard_normal((3, 64))  # 40 pixels, 64 channels, rank 3
+    maps = {0: low.T.reshape(64, 5, 8)}
+    ref0, _ = pca_reduce(maps, maps, layers=(0,), dim=8, normalize=False)
+    got0, _ = pca_reduce(maps, maps, layers=(0,), dim=8, normalize=False, device="cpu")
+    assert np.abs(got0[3:]).max() == 0 and np.abs(ref0[3:]).max() == 0
+    np.testing.assert_allclose(got0[:3], ref0[:3], atol=1e-4)
+
+
 def test_pca_identical_sides_give_identical_maps():
     rng = np.random.default_rng(3)
     L = fake_layers(rng)
