@@ -144,7 +144,8 @@ STAGES = (
 # ---------------------------------------------------------------------------------------
 # The device.
 
-def _cpu_model() -> str:
+def cpu_model() -> str:
+    """The CPU's model name (``/proc/cpuinfo``, else what ``platform`` knows)."""
     try:
         with open("/proc/cpuinfo") as fh:
             for line in fh:
@@ -167,7 +168,7 @@ def device_info(mode: str, device: str | None) -> dict:
     info = {
         "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         "mode": mode,
-        "cpu": _cpu_model(),
+        "cpu": cpu_model(),
         "cpu_cores": n_cpu,
         "load_average": [round(x, 2) for x in os.getloadavg()],
         "python": platform.python_version(),

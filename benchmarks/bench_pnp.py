@@ -42,17 +42,7 @@ DEFAULT_METHODS = ("iterative", "usac", "usac_accurate", "ap3p")
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-
-def cpu_model() -> str:
-    """The CPU's model name from ``/proc/cpuinfo`` (``"unknown"`` where there is none)."""
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.lower().startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return "unknown"
+from bench_pipeline import cpu_model  # noqa: E402  (this folder is on sys.path when run as a script)
 
 
 def device_line() -> str:

@@ -17,3 +17,15 @@ def random_pose(rng: np.random.Generator, max_angle_deg: float = 30.0, max_t: fl
     axis = rng.normal(size=3)
     angle = np.radians(rng.uniform(-max_angle_deg, max_angle_deg))
     return cameras.make_pose(cameras.rotation_about(axis, angle), rng.uniform(-max_t, max_t, size=3))
+
+
+@pytest.fixture(scope="module")
+def torch_one_thread():
+    """torch on one thread for a module: the tiny models are overhead-bound, and OpenMP threads
+    spin on a busy machine. Use with ``pytestmark = pytest.mark.usefixtures("torch_one_thread")``."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

@@ -28,13 +28,7 @@ from freereg_lib.config import FreeRegConfig  # noqa: E402
 TINY_HW = (128, 192)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    # The tiny models are overhead-bound; one thread avoids OpenMP spinning on a busy machine.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 
 @pytest.fixture(scope="module")

@@ -18,12 +18,7 @@ SMALL = (64, 128)
 CFG = config_for("synthetic_indoor", ddim_steps=5, ransac_iters=2000)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 
 @pytest.fixture(scope="module")

@@ -30,18 +30,18 @@ STAGE_NAMES = (
 )
 
 
-def _run(*args, timeout=600):
+def _run(*args, timeout=600, script=SCRIPT):
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1", PYTHONWARNINGS="ignore")
-    return subprocess.run([sys.executable, str(SCRIPT), *args], cwd=ROOT, env=env,
+    return subprocess.run([sys.executable, str(script), *args], cwd=ROOT, env=env,
                           capture_output=True, text=True, timeout=timeout)
 
 
 def test_ci_mode_prints_the_stage_table(tmp_path):
     out_json = tmp_path / "bench.json"
-    proc = _run("--mode", "ci", "--json", str(out_json))
+    proc = _run("--mode", "ci", "--json", str(out_json), "--pair-batch", "2")
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     out = proc.stdout
-    for name in STAGE_NAMES:
+    for name in (*STAGE_NAMES, "diffusion depth, 2 pairs per call (per pair)"):
         assert name in out, f"stage {name!r} missing from the table:\n{out}"
     header = next(line for line in out.splitlines() if line.startswith("stage "))
     assert "time median [s]" in header and "peak [MiB]" in header
@@ -60,6 +60,18 @@ def test_ci_mode_prints_the_stage_table(tmp_path):
         assert chain["memory"][name]["py_peak_mib"] is not None
     assert any(r["backend"] == "tiny" for r in data["results"])
     assert data["device"]["torch"] == torch.__version__
+
+
+def test_pnp_benchmark_prints_one_row_per_method(tmp_path):
+    out_json = tmp_path / "pnp.json"
+    proc = _run("--pairs", "1", "--iters", "300", "--methods", "iterative", "usac", "--json", str(out_json),
+                script=ROOT / "benchmarks" / "bench_pnp.py", timeout=300)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    rows = [line for line in proc.stdout.splitlines() if line.startswith("| ") and "PnP method" not in line]
+    assert [r.split("|")[1].strip() for r in rows] == ["iterative", "usac"]
+    assert "device: CPU" in proc.stdout and out_json.is_file()
+    bad = _run("--pairs", "1", "--methods", "magic", script=ROOT / "benchmarks" / "bench_pnp.py", timeout=120)
+    assert bad.returncode == 2 and "magic" in bad.stderr
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="a GPU is present: gpu mode would run")
