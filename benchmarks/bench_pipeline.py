@@ -635,6 +635,8 @@ def parse_args(argv=None):
     p.add_argument("--pnp-method", default=None,
                    help="cfg.pnp_method: the PnP-RANSAC method of pose.PNP_METHODS (default: the "
                         "config's, \"iterative\", the paper's; \"usac\" is the CPU speed-up)")
+    p.add_argument("--pnp-workers", type=int, default=1,
+                   help="cfg.pnp_workers: threads sharing the PnP-RANSAC iterations (default 1)")
     p.add_argument("--batched-guidance", action="store_true",
                    help="cfg.batched_guidance: both guidance branches in one UNet call")
     p.add_argument("--pca-device", default=None,
@@ -686,6 +688,7 @@ def main(argv=None) -> int:
         overrides["ddim_steps"] = args.ddim_steps
     if args.pnp_method is not None:
         overrides["pnp_method"] = args.pnp_method
+    overrides["pnp_workers"] = args.pnp_workers
     if args.batched_guidance:
         overrides["batched_guidance"] = True
     if args.pca_device is not None:
@@ -702,7 +705,7 @@ def main(argv=None) -> int:
     print(format_device(info), flush=True)
     pairs = [synthetic.make_pair("indoor", seed=s, image_size=image_size) for s in range(max(args.pairs, 1))]
     print(f"pairs:  {len(pairs)} synthetic indoor, {image_size[0]} x {image_size[1]}, "
-          f"{len(pairs[0].points)} points; RANSAC {cfg.ransac_iters} iterations; PnP method {cfg.pnp_method}; "
+          f"{len(pairs[0].points)} points; RANSAC {cfg.ransac_iters} iterations; PnP method {cfg.pnp_method} ({cfg.pnp_workers} worker(s)); "
           f"batched guidance {cfg.batched_guidance}; PCA on {cfg.pca_device or 'host (NumPy)'}; "
           f"matching on {cfg.match_device}; "
           f"keypoint grid {cfg.keypoint_grid[0]} x {cfg.keypoint_grid[1]}; "

@@ -1,14 +1,14 @@
 #!/usr/bin/env python
 """PnP-RANSAC variants on FreeReg's own matches: time per call and registration quality.
 
-    python benchmarks/bench_pnp.py [--pairs N] [--methods iterative usac ...] [--iters I]
+    python benchmarks/bench_pnp.py [--pairs N] [--methods iterative iterative:2 usac ...] [--iters I]
                                    [--json PATH]
 
 What it measures: for N synthetic indoor pairs (seeds 0..N-1, the paper's indoor
 configuration, ``stub`` backend), the features and the FreeReg matches (fusion weight
 ``cfg.fusion_w``) are computed once per pair; then every PnP method of ``pose.PNP_METHODS``
 asked for solves the same matches through ``pipeline.solve(..., "pnp")`` with
-``cfg.pnp_method`` set to it (threshold ``cfg.pnp_reproj_px``, iteration cap ``--iters``,
+``cfg.pnp_method`` set to it (``name:W`` also sets ``cfg.pnp_workers = W``; threshold ``cfg.pnp_reproj_px``, iteration cap ``--iters``,
 default ``cfg.ransac_iters`` = 50k). Each solve is timed with ``time.perf_counter`` (one
 call per pair and method, no warm-up: the calls are independent) and scored by
 ``pipeline.evaluate``. The table gives per method the median / min / max seconds per call,
@@ -112,11 +112,21 @@ def format_table(summary: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def _spec(method: str) -> tuple[str, int]:
+    """``"iterative:2"`` -> ``("iterative", 2)`` (``cfg.pnp_workers``); no suffix: one worker;
+    a suffix that is not a positive count: 0 (refused)."""
+    name, sep, workers = method.partition(":")
+    if not sep:
+        return name, 1
+    return name, int(workers) if workers.isdigit() else 0
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--pairs", type=int, default=20, help="synthetic indoor pairs (seeds 0..N-1)")
     p.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS),
-                   help=f"PnP methods of pose.PNP_METHODS (default: {' '.join(DEFAULT_METHODS)})")
+                   help=f"PnP methods of pose.PNP_METHODS, each optionally with a worker count, "
+                        f"e.g. iterative:2 (default: {' '.join(DEFAULT_METHODS)})")
     p.add_argument("--iters", type=int, default=None,
                    help="RANSAC iteration cap (default: cfg.ransac_iters, the paper's 50k)")
     p.add_argument("--json", default=None, help="also write the per-call rows and the summary here")
@@ -130,7 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     from freereg_lib import config_for, pipeline, pose, synthetic
     from freereg_lib.backends import get_backend
 
-    unknown = [m for m in args.methods if m not in pose.PNP_METHODS]
+    unknown = [m for m in args.methods if _spec(m)[0] not in pose.PNP_METHODS or _spec(m)[1] < 1]
     if unknown:
         print(f"unknown PnP method(s) {unknown}; expected some of {sorted(pose.PNP_METHODS)}", file=sys.stderr)
         return 2
@@ -155,7 +165,8 @@ def main(argv: list[str] | None = None) -> int:
         px_ratio.append(within_px(feats.uv_image[m.idx_image], feats.pts_depth[m.idx_depth], pair.K_image,
                                   pair.T_cam_pc, cfg.pnp_reproj_px))
         for meth in args.methods:
-            c = cfg.override(pnp_method=meth, ransac_iters=iters)
+            name, workers = _spec(meth)
+            c = cfg.override(pnp_method=name, pnp_workers=workers, ransac_iters=iters)
             t0 = time.perf_counter()
             res = pipeline.solve(pair, feats, m, c, "pnp")
             seconds = time.perf_counter() - t0

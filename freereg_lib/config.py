@@ -60,6 +60,7 @@ class FreeRegConfig:
     ransac_n: int = 4
     pnp_reproj_px: float = 10.0
     pnp_method: str = "iterative"  # the paper's (OpenCV's default); "usac": ~100x faster, coarser poses
+    pnp_workers: int = 1  # threads sharing the PnP-RANSAC iterations (same solver, other samples)
     min_matches_kabsch: int = 5
     min_matches_pnp: int = 8
     # Evaluation.

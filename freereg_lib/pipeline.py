@@ -313,7 +313,7 @@ def solve(pair: Pair, feats: PairFeatures, m: Matches, cfg: FreeRegConfig, solve
     if solver == "pnp":
         return pose.pnp_ransac(
             feats.uv_image[m.idx_image], pts_pc, pair.K_image, cfg.pnp_reproj_px,
-            cfg.ransac_iters, cfg.min_matches_pnp, method=cfg.pnp_method,
+            cfg.ransac_iters, cfg.min_matches_pnp, method=cfg.pnp_method, workers=cfg.pnp_workers,
         )
     raise ValueError(f"unknown solver {solver!r}; expected 'kabsch' or 'pnp'")
 

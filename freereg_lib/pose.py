@@ -151,6 +151,7 @@ def pnp_ransac(
     min_matches: int = 8,
     confidence: float = 0.999,
     method: str = "iterative",
+    workers: int = 1,
 ) -> PoseResult:
     """OpenCV ``solvePnPRansac`` on image pixels ``uv (K, 2)`` and cloud points ``pts_pc (K, 3)``.
 
@@ -173,6 +174,10 @@ def pnp_ransac(
     synthetic pairs it is ~100x faster at the same recall with coarser poses; figures in
     ``benchmarks/README.md`` (``benchmarks/bench_pnp.py``).
 
+    ``workers > 1`` splits the ``iterations`` over that many threads (:func:`_best_of_workers`):
+    the same solver and as many hypotheses, other random samples, ~``workers`` x faster on as
+    many free cores (``workers = 1``: exactly one OpenCV call).
+
     Too few usable matches, an OpenCV error or no model with 4 inliers give
     ``success=False`` with a reason, never an exception; an unknown ``method`` raises
     ``ValueError``. (USAC itself raises below 3 points and "succeeds" on exactly 3, so the
@@ -193,15 +198,48 @@ def pnp_ransac(
     if len(rows) < need:
         return _failed("pnp", f"{len(rows)} usable matches (of {len(uv)}; usable: a finite pixel and 3D point), "
                               f"PnP-RANSAC needs at least {need}")
-    try:
+    if int(workers) < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    K = np.asarray(K, dtype=np.float64)
+
+    def run(order: np.ndarray, iters: int):
+        """One OpenCV RANSAC over the usable matches in ``order``: (ok, rvec, tvec, inliers as rows)."""
         ok, rvec, tvec, inl = cv2.solvePnPRansac(
-            pts_pc[rows], uv[rows], np.asarray(K, dtype=np.float64), None,
-            iterationsCount=iterations, reprojectionError=reproj_px, confidence=confidence, flags=flags,
+            pts_pc[order], uv[order], K, None,
+            iterationsCount=iters, reprojectionError=reproj_px, confidence=confidence, flags=flags,
         )
+        return ok, rvec, tvec, None if inl is None else order[inl.reshape(-1)]
+
+    try:
+        if workers == 1:
+            ok, rvec, tvec, inl = run(rows, iterations)
+        else:
+            ok, rvec, tvec, inl = _best_of_workers(run, rows, iterations, int(workers))
     except cv2.error as exc:
         return _failed("pnp", f"OpenCV refused the problem: {str(exc).strip().splitlines()[-1]}")
     if not ok or inl is None or len(inl) < 4:
         return _failed("pnp", "PnP-RANSAC found no model with at least 4 inliers")
     R, _ = cv2.Rodrigues(rvec)
     T = cameras.make_pose(R, tvec.reshape(3))
-    return PoseResult(T, True, "pnp", "", rows[inl.reshape(-1)], 1.0)
+    return PoseResult(T, True, "pnp", "", inl, 1.0)
+
+
+def _best_of_workers(run, rows: np.ndarray, iterations: int, workers: int):
+    """``workers`` RANSAC runs of ``ceil(iterations / workers)`` samples each, in threads
+    (OpenCV releases the GIL), and the model with the most inliers.
+
+    OpenCV seeds its sampler the same way on every call, so each worker sees the matches in
+    its own seeded order (worker 0: the original one) and draws other samples: together
+    they rank as many hypotheses by consensus as one run of ``iterations`` would. Ties go
+    to the lowest worker, so the answer is deterministic.
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    orders = [rows] + [rows[np.random.default_rng(w).permutation(len(rows))] for w in range(1, workers)]
+    per_worker = -(-iterations // workers)
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        results = list(pool.map(lambda order: run(order, per_worker), orders))
+    found = [r for r in results if r[0] and r[3] is not None]
+    if not found:
+        return results[0]
+    return max(found, key=lambda r: len(r[3]))

@@ -64,14 +64,14 @@ def test_ci_mode_prints_the_stage_table(tmp_path):
 
 def test_pnp_benchmark_prints_one_row_per_method(tmp_path):
     out_json = tmp_path / "pnp.json"
-    proc = _run("--pairs", "1", "--iters", "300", "--methods", "iterative", "usac", "--json", str(out_json),
+    proc = _run("--pairs", "1", "--iters", "300", "--methods", "iterative", "iterative:2", "usac", "--json", str(out_json),
                 script=ROOT / "benchmarks" / "bench_pnp.py", timeout=300)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     rows = [line for line in proc.stdout.splitlines() if line.startswith("| ") and "PnP method" not in line]
-    assert [r.split("|")[1].strip() for r in rows] == ["iterative", "usac"]
+    assert [r.split("|")[1].strip() for r in rows] == ["iterative", "iterative:2", "usac"]
     assert "device: CPU" in proc.stdout and out_json.is_file()
-    bad = _run("--pairs", "1", "--methods", "magic", script=ROOT / "benchmarks" / "bench_pnp.py", timeout=120)
-    assert bad.returncode == 2 and "magic" in bad.stderr
+    bad = _run("--pairs", "1", "--methods", "magic", "usac:x", script=ROOT / "benchmarks" / "bench_pnp.py", timeout=120)
+    assert bad.returncode == 2 and "magic" in bad.stderr and "usac:x" in bad.stderr
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="a GPU is present: gpu mode would run")

@@ -234,3 +234,30 @@ def test_usac_iteration_cap_is_passed_to_opencv():
     assert full.success and full.n_inliers > one.n_inliers
     re, te = metrics.pose_errors(full.T_cam_pc, pair.T_cam_pc)
     assert re < 1.0 and te < 0.02
+
+
+def test_pnp_workers_share_the_iterations_and_return_original_indices():
+    """cfg.pnp_workers: one worker is exactly one OpenCV call; several recover the pose too,
+    deterministically, with inliers indexing the caller's matches (NaN rows included)."""
+    import cv2
+
+    pair = ICLSample().pair(0, 30)
+    uv = keypoints.grid_keypoints(pair.image_size, (24, 32))
+    _, pts_pc, keep = metrics.true_correspondences(uv, pair.depth_gt, pair.K_image, pair.T_cam_pc)
+    uv, pts = np.rint(uv[keep]), _corrupt(pts_pc, np.random.default_rng(3), fraction=0.6)
+    pts[::17] = np.nan  # unusable rows shift the usable ones' positions
+    one = pose.pnp_ransac(uv, pts, pair.K_image, iterations=5000, workers=1)
+    rows = np.flatnonzero(np.isfinite(pts).all(1))
+    ok, rvec, tvec, inl = cv2.solvePnPRansac(pts[rows], uv[rows], pair.K_image, None, iterationsCount=5000,
+                                             reprojectionError=10.0, confidence=0.999, flags=cv2.SOLVEPNP_ITERATIVE)
+    assert ok and np.array_equal(one.inliers, rows[inl.reshape(-1)])
+    many = pose.pnp_ransac(uv, pts, pair.K_image, iterations=5000, workers=3)
+    again = pose.pnp_ransac(uv, pts, pair.K_image, iterations=5000, workers=3)
+    assert np.array_equal(many.T_cam_pc, again.T_cam_pc) and np.array_equal(many.inliers, again.inliers)
+    re, te = metrics.pose_errors(many.T_cam_pc, pair.T_cam_pc)
+    assert re < 1.0 and te < 0.02
+    assert np.isfinite(pts[many.inliers]).all()
+    proj, _ = cameras.project(cameras.transform(many.T_cam_pc, pts[many.inliers]), pair.K_image)
+    assert np.linalg.norm(proj - uv[many.inliers], axis=1).max() < 10.0
+    with pytest.raises(ValueError, match="workers"):
+        pose.pnp_ransac(uv, pts, pair.K_image, workers=0)
