@@ -272,13 +272,14 @@ def descriptors(feats: PairFeatures, w: float) -> tuple[np.ndarray, np.ndarray]:
     """Image-side and depth-side descriptors for fusion weight ``w`` (1: diffusion only, 0: geometric only)."""
     from . import features
 
-    if w >= 1.0 or (w > 0 and feats.geo_image is None):
+    if w >= 1.0:
         _need(feats.diff_image, "diffusion")
         return features.l2_normalize(feats.diff_image), features.l2_normalize(feats.diff_depth)
     if w <= 0.0:
         _need(feats.geo_image, "geometric")
         return features.l2_normalize(feats.geo_image), features.l2_normalize(feats.geo_depth)
     _need(feats.diff_image, "diffusion")
+    _need(feats.geo_image, "geometric")  # a fused weight on one kind alone would be another method
     return (
         features.fuse(feats.diff_image, feats.geo_image, w),
         features.fuse(feats.diff_depth, feats.geo_depth, w),

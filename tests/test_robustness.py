@@ -457,3 +457,12 @@ def test_batch_command_with_a_failing_notebook(tmp_path, capsys):
     assert (finished / "done.json").is_file() and (finished / "out" / "pairs.csv").is_file()
     md = (run_dir / "results.md").read_text()
     assert finished.name in md.split("Not in the table:")[0] and failed.name in md.split("Not in the table:")[1]
+
+
+def test_fused_matching_without_geometric_features_is_a_clear_error():
+    cfg = config_for("synthetic_indoor")
+    pair = synthetic.make_pair("indoor", seed=0, image_size=(96, 128))
+    feats = pipeline.compute_features(pair, get_backend("stub", cfg), cfg, geometric=False)
+    assert len(pipeline.match(feats, 1.0)) > 0  # diffusion only needs no geometric part
+    with pytest.raises(ValueError, match="geometric features were not computed"):
+        pipeline.match(feats, 0.5)
