@@ -206,9 +206,11 @@ def compute_features(
     if geometric:
         cloud_img, _ = cameras.backproject(np.where(mono < cfg.depth_max, mono, 0), pair.K_image)
         # Normals face each cloud's own viewpoint, so FPFH signs agree across the two sides.
-        down_img, feats_img = geo.geometric_features(cloud_img, cfg)
-        down_pc, feats_pc = geo.geometric_features(pair.points, cfg, camera_location=pair.T_pc_sensor[:3, 3])
         good = np.isfinite(pts_img).all(1)
+        # ``at``: only the features the keypoints will read are computed.
+        down_img, feats_img = geo.geometric_features(cloud_img, cfg, at=pts_img[good])
+        down_pc, feats_pc = geo.geometric_features(pair.points, cfg, camera_location=pair.T_pc_sensor[:3, 3],
+                                                   at=pts_dep)
         geo_img = np.zeros((len(uv_img), feats_img.shape[1]))
         geo_img[good] = geo.pixel_features(pts_img[good], down_img, feats_img, cfg.tau_g)
         geo_dep = geo.pixel_features(pts_dep, down_pc, feats_pc, cfg.tau_g)

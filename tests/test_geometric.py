@@ -244,3 +244,24 @@ def _one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+def test_fpfh_at_the_keypoints_equals_the_full_computation():
+    """``at``: only the rows the keypoints read are computed, bitwise the full features' rows,
+    so the keypoints' features are identical (the pipeline's use)."""
+    from freereg_lib import cameras, config_for, keypoints, synthetic
+
+    cfg = config_for("synthetic_indoor")
+    pair = synthetic.make_pair("indoor", seed=3, image_size=(240, 320))
+    uv = keypoints.grid_keypoints(pair.image_size, cfg.keypoint_grid)
+    z = cameras.nearest_sample(pair.depth_gt, uv)
+    query = cameras.transform(cameras.invert(pair.T_cam_pc), cameras.lift(uv, z, pair.K_image))
+    query[::7] = np.nan  # pixels without depth
+    down, full = geometric_features(pair.points, cfg)
+    down_at, some = geometric_features(pair.points, cfg, at=query)
+    np.testing.assert_array_equal(down_at, down)
+    computed = np.any(some != 0, axis=1)
+    assert 0 < computed.sum() < 0.5 * len(down)  # far fewer rows than the cloud's
+    np.testing.assert_array_equal(some[computed], full[computed])
+    np.testing.assert_array_equal(pixel_features(query, down_at, some, cfg.tau_g),
+                                  pixel_features(query, down, full, cfg.tau_g))
