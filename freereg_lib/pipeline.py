@@ -425,7 +425,7 @@ def run_pairs(pairs: Iterable[Pair], backend, cfg: FreeRegConfig, variants=DEFAU
 
     With ``cfg.pair_batch = B > 1`` the diffusion models run on ``B`` pairs at a time
     (:func:`compute_features_batch`): the same rows up to float rounding, fewer and larger
-    model calls (a GPU speed-up; on a CPU it only costs memory).
+    model calls (a GPU speed-up; on a CPU it gains little and costs memory).
     """
     from itertools import islice
 
