@@ -19,6 +19,8 @@ def iter_pairs(
 ) -> Iterator[Pair]:
     """Yield up to ``n_pairs`` pairs of ``dataset`` (all of an on-disk dataset when None).
 
+    ``seed`` picks the synthetic scenes; ``icl`` and the on-disk datasets have fixed pair
+    lists (as the paper's benchmarks), so it does not change their pairs.
     ``shard="i/n"`` keeps pair k of the first ``n_pairs`` when ``k % n == i``, so n shards
     together cover exactly the pairs of one unsharded run.
     """
