@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .backends.base import Backend, _hints, check_layers
+
 # The config fields that change a backend's outputs (see FreeRegConfig).
 FEATURE_FIELDS = ("outdoor", "resize_hw", "t_hat", "ddim_steps", "ddim_eta", "guidance_w",
                   "prompt", "negative_prompt", "seed")
@@ -94,10 +96,8 @@ class CachedBackend:
         return self._cached("mono_depth", (image, depth_gt),
                             lambda: [self.backend.mono_depth(image, depth_gt=depth_gt)], False)[0]
 
-    def mono_depth_batch(self, images, depth_gts=None) -> list[np.ndarray]:
-        """:meth:`mono_depth` per image (each its own cache entry)."""
-        gts = [None] * len(images) if depth_gts is None else list(depth_gts)
-        return [self.mono_depth(im, depth_gt=gt) for im, gt in zip(images, gts)]
+    # The backends' default: :meth:`mono_depth` per image, so each is its own cache entry.
+    mono_depth_batch = Backend.mono_depth_batch
 
     def key(self, method: str, inputs: tuple) -> str:
         """The cache key of ``method`` on ``inputs`` (arrays or None), a hex SHA-256."""
@@ -128,8 +128,6 @@ class CachedBackend:
         return self._cached_batch("diffusion_depth", depths, hints, layers)
 
     def _cached_batch(self, method: str, xs, hints, layers) -> list[dict[int, np.ndarray]]:
-        from .backends.base import _hints, check_layers
-
         keep = check_layers(layers)
         hints = _hints(hints, len(xs))
         paths = [self.path(method, (x, h.get("ids"), h.get("xyz"))) for x, h in zip(xs, hints)]
