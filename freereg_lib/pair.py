@@ -26,6 +26,12 @@ class Pair:
         T_cam_pc: ``(4, 4)`` ground truth, maps ``pc`` points into the image camera. This
             is what the solvers estimate.
         depth_gt: ``(H, W) float64`` true depth of the image (evaluation only; 0 = none).
+        sensor_depth: ``(H_d, W_d) float64`` the depth frame's own sensor depth in metres
+            (0 = hole), when the dataset has one (3DMatch, ScanNet, KITTI-DC). As in the
+            official code it *is* the depth map (no projection round trip; densified per
+            ``cfg.densify``), the depth-side cloud for geometric features is its
+            back-projection, and evaluation lifts depth-side keypoints with it (the
+            official ``dpt_gtd``). None: the cloud is projected on the depth camera instead.
         image_ids: ``(H, W) int32`` class ids of the image pixels (synthetic only).
         point_ids: ``(N,) int32`` class ids of the points (synthetic only).
         name: a short identifier, e.g. ``"icl/00010-00040"``.
@@ -40,6 +46,7 @@ class Pair:
     T_pc_sensor: np.ndarray
     T_cam_pc: np.ndarray
     depth_gt: np.ndarray | None = None
+    sensor_depth: np.ndarray | None = None
     image_ids: np.ndarray | None = None
     point_ids: np.ndarray | None = None
     name: str = "pair"
@@ -116,6 +123,12 @@ class Pair:
             if not np.any(np.isfinite(d) & (d > 0)):
                 fail("depth_gt has no valid pixel (all zero: no true depth anywhere); pass depth_gt=None "
                      "when the image has no ground-truth depth (the pair can then be registered, not scored)")
+        if self.sensor_depth is not None:
+            d = np.asarray(self.sensor_depth)
+            if d.shape != size:
+                fail(f"sensor_depth must be (H_d, W_d) = {size} like depth_size, got shape {d.shape}")
+            if not np.any(np.isfinite(d) & (d > 0)):
+                fail("sensor_depth has no valid pixel (all zero); pass sensor_depth=None to project the cloud instead")
         if self.image_ids is not None and np.shape(self.image_ids) != (H, W):
             fail(f"image_ids must be (H, W) = {(H, W)} like the image, got shape {np.shape(self.image_ids)}")
         if self.point_ids is not None and np.shape(self.point_ids) != (len(pts),):
