@@ -13,6 +13,8 @@ This module owns every projection and back-projection in the library.
 """
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 
@@ -64,11 +66,44 @@ def is_rigid(T: np.ndarray, atol: float = 1e-6) -> bool:
     )
 
 
-def check_pose(T: np.ndarray, name: str = "T", atol: float = 1e-4) -> np.ndarray:
-    """``T`` as ``(4, 4) float64`` when it is a rigid transform (:func:`is_rigid` at ``atol``).
+# Rotations read from files are orthonormal only to the digits written: 7-Scenes / 3DMatch pose
+# files to ~3e-4. Up to ORTHO_FIX a pose is replaced by its nearest rigid pose (above
+# ORTHO_WARN with a warning); beyond it the matrix is no rotation and is refused.
+ORTHO_SILENT = 1e-9
+ORTHO_WARN = 1e-4
+ORTHO_FIX = 1e-2
 
-    Otherwise a ``ValueError`` names ``name``, what was expected and what is wrong (a
-    reflection, a scale, a transposed matrix, a bad last row).
+
+def orthonormality(R: np.ndarray) -> float:
+    """``max |R^T R - I|`` of a ``(3, 3)`` matrix: 0 for a rotation."""
+    R = np.asarray(R, dtype=np.float64)
+    return float(np.abs(R.T @ R - np.eye(3)).max())
+
+
+def nearest_rotation(R: np.ndarray) -> np.ndarray:
+    """The rotation nearest to ``R (3, 3)`` in the Frobenius norm (``U V^T`` of its SVD).
+
+    Meant for a rotation with rounding errors; a reflection (det < 0) is not turned into a
+    rotation here (:func:`check_pose` refuses it).
+    """
+    U, _, Vt = np.linalg.svd(np.asarray(R, dtype=np.float64))
+    return U @ Vt
+
+
+def check_pose(T: np.ndarray, name: str = "T", atol: float = ORTHO_WARN, fix_tol: float = ORTHO_FIX,
+               max_translation: float | None = None, units_hint: str = "", warn: bool = True) -> np.ndarray:
+    """``T`` as a rigid ``(4, 4) float64`` pose, re-orthonormalised when it is off by a little.
+
+    * ``max |R^T R - I|`` up to ``fix_tol`` (default 1e-2): R is replaced by the nearest
+      rotation (:func:`nearest_rotation`; unchanged when it is a rotation to 1e-9), with a
+      ``RuntimeWarning`` naming ``name`` when the deviation exceeds ``atol`` (1e-4; none with
+      ``warn=False``, for a reader that warns its own way). A pose
+      that is rigid to ``atol`` comes back bit for bit unchanged up to 1e-9.
+    * Refused with a ``ValueError`` that names ``name``, gives the real deviation and says
+      what is wrong: a reflection, a scale (a similarity), a transposed matrix (the
+      translation in the bottom row), a last row other than ``[0, 0, 0, 1]``, R farther than
+      ``fix_tol`` from a rotation, or (with ``max_translation``, in metres) a translation
+      longer than the dataset allows (millimetres read as metres; ``units_hint`` is appended).
     """
     arr = np.asarray(T)
     if arr.shape != (4, 4) or not np.issubdtype(arr.dtype, np.number):
@@ -76,21 +111,43 @@ def check_pose(T: np.ndarray, name: str = "T", atol: float = 1e-4) -> np.ndarray
     arr = arr.astype(np.float64)
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} has non-finite entries (NaN or inf): {arr.tolist()}")
-    if is_rigid(arr, atol):
-        return arr
     R = arr[:3, :3]
     det = float(np.linalg.det(R))
-    ortho = float(np.abs(R.T @ R - np.eye(3)).max())
-    if not np.allclose(arr[3, :3], 0, atol=atol) and is_rigid(arr.T, atol):
-        hint = "; it looks transposed: pass T.T"
-    elif not np.allclose(arr[3], [0, 0, 0, 1], atol=atol):
+    ortho = orthonormality(R)
+    bottom_ok = np.allclose(arr[3], [0, 0, 0, 1], atol=atol)
+    if bottom_ok and det > 0 and ortho <= fix_tol:
+        out = arr
+        if ortho > ORTHO_SILENT:
+            out = arr.copy()
+            out[:3, :3] = nearest_rotation(R)
+            out[3] = [0.0, 0.0, 0.0, 1.0]
+            if ortho > atol and warn:
+                warnings.warn(f"{name}: R is orthonormal only to {ortho:.1e} (max |R^T R - I|, above {atol:g}); "
+                              f"replaced by the nearest rotation (SVD), as poses written with few digits need",
+                              RuntimeWarning, stacklevel=2)
+        t = float(np.linalg.norm(out[:3, 3]))
+        if max_translation is not None and t > max_translation:
+            raise ValueError(
+                f"{name}: the translation |t| = {t:.6g} is longer than the {max_translation:g} m this dataset "
+                f"allows; it looks like millimetres read as metres (divide t by 1000){units_hint}")
+        return out
+    scale = abs(det) ** (1 / 3)
+    residual = orthonormality(R / scale) if scale > 0 else np.inf
+    rigid_T = (np.allclose(arr[:3, 3], 0, atol=atol) and abs(arr[3, 3] - 1) <= atol
+               and not np.allclose(arr[3, :3], 0, atol=atol) and orthonormality(arr[:3, :3].T) <= fix_tol
+               and np.linalg.det(arr[:3, :3]) > 0)
+    if rigid_T:
+        hint = ("; it looks transposed: pass T.T (the translation sits in the bottom row and the last column "
+                "is [0, 0, 0, 1]; a pose file holds the rows [R | t] with 0 0 0 1 last)")
+    elif not bottom_ok:
         hint = f"; its last row is {arr[3].tolist()}, expected [0, 0, 0, 1]"
     elif det < 0:
         hint = "; det(R) < 0 is a reflection (an axis flipped, or a left-handed frame)"
-    elif np.allclose(R.T @ R, np.eye(3) * abs(det) ** (2 / 3), rtol=1e-3, atol=atol):
-        hint = f"; R carries a scale of {abs(det) ** (1 / 3):.4g} (a similarity): divide it out"
+    elif abs(scale - 1) > fix_tol and residual <= fix_tol:
+        hint = f"; R carries a scale of {scale:.4g} (a similarity): divide it out"
     else:
-        hint = ""
+        hint = (f"; R is farther from a rotation than the {fix_tol:g} within which a pose is re-orthonormalised "
+                "(a per-axis scale or a shear, or numbers lost when the pose was written)")
     raise ValueError(
         f"{name} is not a rigid transform: expected [[R, t], [0, 0, 0, 1]] with R orthonormal and "
         f"det(R) = +1, got max |R^T R - I| = {ortho:.3g}, det(R) = {det:.6g}{hint}"
@@ -98,11 +155,19 @@ def check_pose(T: np.ndarray, name: str = "T", atol: float = 1e-4) -> np.ndarray
 
 
 def check_intrinsics(K: np.ndarray, size: tuple[int, int] | None = None, name: str = "K") -> np.ndarray:
-    """``K`` as ``(3, 3) float64`` when it is a pinhole matrix that fits an image of ``size = (H, W)``.
+    """``K`` as ``(3, 3) float64`` when it is a pinhole matrix in pixels that fits an image of
+    ``size = (H, W)``.
 
-    Checks: finite, last row ``[0, 0, 1]``, focal lengths ``fx, fy > 0``, and (with ``size``)
-    the principal point inside the image (``-0.5 <= cx <= W - 0.5``, likewise ``cy``).
-    Otherwise a ``ValueError`` names ``name`` and what was expected.
+    Checks: finite, last row ``[0, 0, 1]``, focal lengths ``fx, fy > 0``; not normalised
+    (``fx, fy < 2`` px, or with ``size`` of at least 32 px a principal point in ``[0, 1]``
+    with ``fx, fy < 10``: "normalised intrinsics: multiply row 0 by W and row 1 by H"); with
+    ``size`` the principal point inside the image (``-0.5 <= cx <= W - 0.5``, likewise
+    ``cy``) and not at the centre of another resolution: when ``(2 cx + 1) / W`` and
+    ``(2 cy + 1) / H`` agree on a factor ``s`` (within 15 %) outside ``[0.67, 1.5]``,
+    ``K`` was made for an image ``s`` times this one (a crop that keeps one corner of a
+    larger image looks the same and is refused too: rescale ``K`` or the image instead). A
+    principal point off centre along one axis only (KITTI after its top crop) passes.
+    Otherwise a ``ValueError`` names ``name``, what was expected and the likely cause.
     """
     arr = np.asarray(K)
     if arr.shape != (3, 3) or not np.issubdtype(arr.dtype, np.number):
@@ -116,15 +181,56 @@ def check_intrinsics(K: np.ndarray, size: tuple[int, int] | None = None, name: s
     fx, fy, cx, cy = arr[0, 0], arr[1, 1], arr[0, 2], arr[1, 2]
     if not (fx > 0 and fy > 0):
         raise ValueError(f"{name} has focal lengths fx = {fx:g}, fy = {fy:g} px; both must be > 0")
+    values = f"fx = {fx:g}, fy = {fy:g}, cx = {cx:g}, cy = {cy:g}"
+    big = size is not None and min(size) >= 32
+    if (fx < 2 and fy < 2) or (big and 0 <= cx <= 1 and 0 <= cy <= 1 and fx < 10 and fy < 10):
+        H, W = size if size is not None else ("H", "W")
+        what = (f"for a {W} x {H} (W x H) image" if size is not None
+                else "(a real camera has focal lengths of hundreds of pixels)")
+        raise ValueError(f"{name} holds normalised intrinsics: multiply row 0 by W and row 1 by H "
+                         f"(K[0] *= {W}; K[1] *= {H}); got {values} {what}")
     if size is not None:
         H, W = size
+        # The image whose centre the principal point is: (2 cx + 1) x (2 cy + 1) pixels.
+        sx, sy = (2 * cx + 1) / W, (2 * cy + 1) / H
+        s = float(np.sqrt(abs(sx * sy)))
+        other = sx > 0 and sy > 0 and abs(sx - sy) <= 0.15 * max(sx, sy) and not (1 / 1.5 <= s <= 1.5)
+        hint = ""
+        if other:
+            hint = (f" K looks made for a {2 * cx + 1:.0f} x {2 * cy + 1:.0f} image (its principal point is at "
+                    f"that image's centre), not this {W} x {H} one: rescale it with "
+                    f"cameras.scale_intrinsics(K, {1 / sx:.4g}, {1 / sy:.4g}), or resize the image to match.")
         if not (-0.5 <= cx <= W - 0.5 and -0.5 <= cy <= H - 0.5):
             raise ValueError(
                 f"{name}'s principal point (cx, cy) = ({cx:g}, {cy:g}) lies outside its {W} x {H} (W x H) "
-                f"image; expected 0 <= cx < {W} and 0 <= cy < {H}. Were the intrinsics made for another "
-                "resolution (see cameras.scale_intrinsics), or are they normalised instead of in pixels?"
+                f"image; expected 0 <= cx < {W} and 0 <= cy < {H}."
+                + (hint or " Were the intrinsics made for another resolution (see cameras.scale_intrinsics)?")
             )
+        if other:
+            raise ValueError(f"{name}'s principal point (cx, cy) = ({cx:g}, {cy:g}) is far from the centre "
+                             f"({(W - 1) / 2:g}, {(H - 1) / 2:g}) of its {W} x {H} (W x H) image.{hint}")
     return arr
+
+
+def check_size_order(K: np.ndarray, size: tuple[int, int], name: str = "depth_size", k_name: str = "K_depth") -> None:
+    """Refuse an image size given as ``(W, H)`` where ``(H, W)`` is meant.
+
+    With ``K``'s principal point near the centre of the swapped size (``cx ~ size[0] / 2``,
+    ``cy ~ size[1] / 2``, within 10 % of the sides together) and not near the centre of the
+    size as given (off by more than 20 %), a ``ValueError`` says "``name`` is (H, W); you gave
+    (W, H)?". Square sizes and off-centre principal points (KITTI's crop) are left alone.
+    """
+    K = np.asarray(K, dtype=np.float64)
+    a, b = (int(v) for v in size)
+    if a == b or K.shape != (3, 3):
+        return
+    cx, cy = K[0, 2], K[1, 2]
+    given = abs(cx - (b - 1) / 2) / b + abs(cy - (a - 1) / 2) / a
+    swapped = abs(cx - (a - 1) / 2) / a + abs(cy - (b - 1) / 2) / b
+    if swapped < 0.1 and given > 0.2:
+        raise ValueError(f"{name} is (H, W); you gave (W, H)? {name} = {tuple(size)} puts the image centre at "
+                         f"({(b - 1) / 2:g}, {(a - 1) / 2:g}), far from {k_name}'s principal point "
+                         f"({cx:g}, {cy:g}); ({b}, {a}) fits it")
 
 
 def rotation_about(axis: np.ndarray, angle_rad: float) -> np.ndarray:

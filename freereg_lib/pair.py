@@ -61,23 +61,30 @@ class Pair:
 
         Raises ``ValueError`` naming the pair, the field and what was expected: an image that
         is not ``(H, W, 3) uint8``, an empty cloud or one with NaN / inf points, intrinsics
-        with a non-positive focal length or a principal point outside their image, a pose
-        that is not rigid, a ``depth_gt`` of another size or without one valid pixel, id maps
-        of the wrong size. :func:`freereg_lib.pipeline.compute_features` calls it first, so
-        inside a benchmark a bad pair becomes a recorded failure.
+        that do not fit their image (:func:`~freereg_lib.cameras.check_intrinsics`: a
+        non-positive focal length, normalised intrinsics, a principal point outside the image
+        or at the centre of another resolution), a ``depth_size`` given as ``(W, H)``, a pose
+        that is not rigid (:func:`~freereg_lib.cameras.check_pose`), a camera thousands of
+        cloud sizes away from the cloud (a translation in millimetres), a ``depth_gt`` or
+        ``sensor_depth`` of another size, without one valid pixel, or in other units than the
+        cloud (its median more than 50 x or less than 1/50 of the median depth of the cloud
+        seen from the depth camera: millimetres vs metres), id maps of the wrong size.
+
+        Poses off orthonormal by up to 1e-2 (rotations written with few digits) are replaced
+        *in this pair* by their nearest rigid pose, with a warning above 1e-4.
+        :func:`freereg_lib.pipeline.compute_features` calls it first, so inside a benchmark a
+        bad pair becomes a recorded failure.
         """
         from . import cameras
 
         def fail(msg: str):
             raise ValueError(f"pair {self.name}: {msg}")
 
-        def checked(check, *args):
+        def checked(check, *args, **kw):
             try:
-                check(*args)
+                return check(*args, **kw)
             except ValueError as exc:
                 msg = str(exc)
-            else:
-                return
             fail(msg)
 
         img = np.asarray(self.image)
@@ -113,27 +120,62 @@ class Pair:
             ok = False
         if not ok:
             fail(f"depth_size must be (H_d, W_d), two positive integers, got {self.depth_size!r}")
+        if np.shape(self.K_depth) == (3, 3):
+            checked(cameras.check_size_order, self.K_depth, size, "depth_size", "K_depth")
         checked(cameras.check_intrinsics, self.K_depth, size, "K_depth")
-        checked(cameras.check_pose, self.T_pc_sensor, "T_pc_sensor")
-        checked(cameras.check_pose, self.T_cam_pc, "T_cam_pc")
-        if self.depth_gt is not None:
-            d = np.asarray(self.depth_gt)
-            if d.shape != (H, W):
-                fail(f"depth_gt must be (H, W) = {(H, W)} like the image, got shape {d.shape}")
-            if not np.any(np.isfinite(d) & (d > 0)):
-                fail("depth_gt has no valid pixel (all zero: no true depth anywhere); pass depth_gt=None "
-                     "when the image has no ground-truth depth (the pair can then be registered, not scored)")
-        if self.sensor_depth is not None:
-            d = np.asarray(self.sensor_depth)
-            if d.shape != size:
-                fail(f"sensor_depth must be (H_d, W_d) = {size} like depth_size, got shape {d.shape}")
-            if not np.any(np.isfinite(d) & (d > 0)):
+        for name in ("T_pc_sensor", "T_cam_pc"):
+            given = getattr(self, name)
+            T = checked(cameras.check_pose, given, name, warn=False)
+            if not np.array_equal(T, given):  # re-orthonormalised
+                ortho = cameras.orthonormality(np.asarray(given, dtype=np.float64)[:3, :3])
+                if ortho > cameras.ORTHO_WARN:
+                    warnings.warn(f"pair {self.name}: {name}'s R is orthonormal only to {ortho:.1e} (max |R^T R - I|, "
+                                  f"above {cameras.ORTHO_WARN:g}); replaced by the nearest rotation (SVD)",
+                                  RuntimeWarning, stacklevel=2)
+                setattr(self, name, T)
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        across = float(np.linalg.norm(hi - lo))
+        for name, centre in (("T_cam_pc", cameras.invert(self.T_cam_pc)[:3, 3]), ("T_pc_sensor", self.T_pc_sensor[:3, 3])):
+            away = float(np.linalg.norm(np.maximum(0, np.maximum(lo - centre, centre - hi))))
+            if away > 10 * across + 100:
+                fail(f"{name} puts its camera {away:.4g} m from the point cloud, which is {across:.3g} m across: "
+                     "its translation looks like millimetres (divide t by 1000), or it belongs to another cloud")
+        ref = None  # median depth of the cloud seen from the depth camera, for the units of depth maps
+        for name, shape in (("depth_gt", (H, W)), ("sensor_depth", size)):
+            d = getattr(self, name)
+            if d is None:
+                continue
+            d = np.asarray(d)
+            if d.shape != shape:
+                fail(f"{name} must be {'(H, W)' if name == 'depth_gt' else '(H_d, W_d)'} = {shape} like "
+                     f"{'the image' if name == 'depth_gt' else 'depth_size'}, got shape {d.shape}")
+            valid = np.isfinite(d) & (d > 0)
+            if not valid.any():
+                if name == "depth_gt":
+                    fail("depth_gt has no valid pixel (all zero: no true depth anywhere); pass depth_gt=None "
+                         "when the image has no ground-truth depth (the pair can then be registered, not scored)")
                 fail("sensor_depth has no valid pixel (all zero); pass sensor_depth=None to project the cloud instead")
+            if ref is None:
+                ref = self._cloud_median_depth(pts, size)
+            median = float(np.median(d[valid]))
+            if ref > 0 and not 1 / 50 <= median / ref <= 50:
+                fail(f"{name}'s median {median:.4g} is {median / ref:.3g} x the median depth {ref:.4g} m of the "
+                     f"point cloud seen from the depth camera: {_units_hint(name, median / ref)}")
         if self.image_ids is not None and np.shape(self.image_ids) != (H, W):
             fail(f"image_ids must be (H, W) = {(H, W)} like the image, got shape {np.shape(self.image_ids)}")
         if self.point_ids is not None and np.shape(self.point_ids) != (len(pts),):
             fail(f"point_ids must be (N,) = ({len(pts)},) like points, got shape {np.shape(self.point_ids)}")
         return self
+
+    def _cloud_median_depth(self, pts: np.ndarray, size: tuple[int, int]) -> float:
+        """Median z of the cloud points inside the depth camera's view (at most ~50k of them); 0 when none."""
+        from . import cameras
+
+        sub = pts[:: max(1, len(pts) // 50_000)]
+        uv, z = cameras.project(cameras.transform(cameras.invert(self.T_pc_sensor), sub), self.K_depth)
+        with np.errstate(invalid="ignore"):
+            inside = (z > 0) & (uv[:, 0] >= -0.5) & (uv[:, 0] < size[1] - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < size[0] - 0.5)
+        return float(np.median(z[inside])) if inside.any() else 0.0
 
     def drop_nonfinite_points(self) -> "Pair":
         """A copy without the points that hold NaN or inf (and their ``point_ids``); warns with the count."""
@@ -144,6 +186,17 @@ class Pair:
                       RuntimeWarning, stacklevel=2)
         ids = None if self.point_ids is None else np.asarray(self.point_ids)[keep]
         return dataclasses.replace(self, points=np.asarray(self.points)[keep], point_ids=ids)
+
+
+def _units_hint(name: str, ratio: float) -> str:
+    k = int(np.round(np.log10(ratio)))
+    if k >= 3:
+        return (f"{name} looks like millimetres where the cloud is in metres (a depth PNG read with the wrong "
+                f"depth_scale); divide it by {10.0 ** k:g}")
+    if k <= -3:
+        return (f"{name} looks like metres divided by {10.0 ** -k:g} once too often, or the cloud is in "
+                "millimetres; both must be in metres")
+    return f"they differ by a factor ~{10.0 ** k:g}: one of them is in other units than metres"
 
 
 class UnreadablePair:

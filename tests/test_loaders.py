@@ -261,19 +261,27 @@ def test_kitti_calibration_oxts_poses_crop_and_pose_convention(tmp_path):
 # --------------------------------------------------------------------------------------
 # The official demo.
 
-def test_demo_pair_inverts_the_rgb_to_cloud_pose(tmp_path):
-    root = tmp_path / "demo"
-    K_rgb, K_dpt = cameras.intrinsics(72, 72, 52.0, 31.0), cameras.intrinsics(36, 36, 23.5, 17.5)
+def make_demo(root, rgb_size=(72, 96), dpt_size=(36, 48)):
+    """The official demo layout with an intrinsics.json; returns (root, K_rgb, K_dpt, points)."""
+    (h, w), (hd, wd) = rgb_size, dpt_size
+    K_rgb = cameras.intrinsics(0.75 * w, 0.75 * w, 0.54 * w, 0.43 * h)
+    K_dpt = cameras.intrinsics(0.75 * wd, 0.75 * wd, 0.49 * wd, 0.486 * hd)
     T_world_cam, T_world_sensor = POSES[0], POSES[1]
-    points, _ = cameras.backproject(render(K_dpt, T_world_sensor, (36, 48)), K_dpt)  # sensor frame
+    points, _ = cameras.backproject(render(K_dpt, T_world_sensor, dpt_size), K_dpt)  # sensor frame
     (root / "just_for_eval").mkdir(parents=True)
     header = f"ply\nformat ascii 1.0\nelement vertex {len(points)}\nproperty double x\nproperty double y\nproperty double z\nend_header\n"
     (root / "target_pc.ply").write_text(header + "\n".join(" ".join(repr(float(v)) for v in p) for p in points) + "\n")
-    write_rgb(root / "source_rgb.png", (72, 96), 0)
-    write_depth(root / "just_for_eval" / "source_rgb.gtd.png", render(K_rgb, T_world_cam, (72, 96)))
+    write_rgb(root / "source_rgb.png", rgb_size, 0)
+    write_depth(root / "just_for_eval" / "source_rgb.gtd.png", render(K_rgb, T_world_cam, rgb_size))
     np.savetxt(root / "just_for_eval" / "rgb2pc.gt.pose.txt", cameras.invert(T_world_sensor) @ T_world_cam)
     (root / "intrinsics.json").write_text(json.dumps({
-        "rgb_intrinsic": K_rgb.tolist(), "dpt_intrinsic": K_dpt.tolist(), "rgb_size": [96, 72], "dpt_size": [48, 36]}))
+        "rgb_intrinsic": K_rgb.tolist(), "dpt_intrinsic": K_dpt.tolist(), "rgb_size": [w, h], "dpt_size": [wd, hd]}))
+    return root, K_rgb, K_dpt, points
+
+
+def test_demo_pair_inverts_the_rgb_to_cloud_pose(tmp_path):
+    root, K_rgb, K_dpt, points = make_demo(tmp_path / "demo")
+    T_world_cam, T_world_sensor = POSES[0], POSES[1]
     pair = load_demo_pair(root)
     assert [p.name for p in pairlists.open_dataset("demo", root).pairs()] == [pair.name]
     np.testing.assert_allclose(pair.points, points, atol=1e-12)
@@ -288,7 +296,8 @@ def test_demo_pair_inverts_the_rgb_to_cloud_pose(tmp_path):
 def test_open_dataset_by_name(tmp_path):
     assert isinstance(pairlists.open_dataset("3DMatch", make_3dmatch(tmp_path / "3dm")), ThreeDMatch)
     official = pairlists.open_dataset("scannet", tmp_path / "3dm")  # <scene>/query/: the official data
-    assert isinstance(official, FreeRegScenes) and official.dataset == "scannet" and official.voxel == 0.03
+    # The official code's depth-side cloud is the back-projection of the depth map: no 3 cm voxel grid.
+    assert isinstance(official, FreeRegScenes) and official.dataset == "scannet" and official.voxel is None
     root, _, _ = make_scannet(tmp_path / "export")
     assert isinstance(pairlists.open_dataset("scannet", root, frame_step=1), ScanNet)
     with pytest.raises(ValueError, match="unknown dataset 'nyu'"):

@@ -207,7 +207,7 @@ def test_a_loader_error_in_the_middle_of_a_dataset_is_one_failed_pair(pair, stub
     ("K_image", cameras.intrinsics(100.0, 0.0, 80, 60), r"K_image has focal lengths .*both must be > 0"),
     ("K_image", cameras.intrinsics(525.0, 525.0, 319.5, 239.5),
      r"K_image's principal point \(cx, cy\) = \(319\.5, 239\.5\) lies outside its 160 x 120 \(W x H\) image"),
-    ("K_depth", cameras.intrinsics(0.8, 0.8, 0.5, -0.7), r"K_depth's principal point .*normalised instead of in pixels"),
+    ("K_depth", cameras.intrinsics(0.8, 0.8, 0.5, -0.7), r"K_depth holds normalised intrinsics: multiply row 0 by W and row 1 by H"),
     ("K_depth", np.eye(4), r"K_depth must be a \(3, 3\) intrinsics matrix"),
     ("K_image", np.array([[100.0, 0, 80], [0, 100, 60], [0, 0, 2]]), r"K_image must have the last row \[0, 0, 1\]"),
     ("depth_size", (120, 0), r"depth_size must be \(H_d, W_d\), two positive integers, got \(120, 0\)"),

@@ -19,29 +19,128 @@ def _exists(path: str | Path) -> Path:
     return path
 
 
+def _truncated(path: Path) -> str:
+    """Why the JPEG / PNG at ``path`` is cut short, or ``""`` when it is whole.
+
+    OpenCV decodes a truncated JPEG without an error (the missing rows come out grey), so
+    the end of the file is checked: a JPEG's end-of-image marker ``FF D9``, a PNG's ``IEND``
+    chunk. A file without it at its end (some cameras append data after the image) is
+    decoded by PIL with truncated images refused, which settles it.
+    """
+    with open(path, "rb") as f:
+        head = f.read(8)
+        f.seek(0, 2)
+        f.seek(max(0, f.tell() - 4096))
+        tail = f.read()
+    if head[:3] == b"\xff\xd8\xff":
+        kind, end = "JPEG", b"\xff\xd9"
+    elif head == b"\x89PNG\r\n\x1a\n":
+        kind, end = "PNG", b"IEND"
+    else:
+        return ""
+    if end in tail.rstrip(b"\x00"):
+        return ""
+    from PIL import Image, ImageFile
+
+    old, ImageFile.LOAD_TRUNCATED_IMAGES = ImageFile.LOAD_TRUNCATED_IMAGES, False
+    try:
+        with Image.open(path) as im:
+            im.load()
+    except Exception as exc:  # PIL raises OSError (truncated) or SyntaxError / ValueError (corrupt)
+        return f"a truncated {kind} (no {'end-of-image marker FF D9' if kind == 'JPEG' else 'IEND chunk'}; {exc})"
+    finally:
+        ImageFile.LOAD_TRUNCATED_IMAGES = old
+    return ""
+
+
 def read_rgb(path: str | Path) -> np.ndarray:
-    """An image file as ``(H, W, 3) uint8`` RGB."""
+    """An image file as ``(H, W, 3) uint8`` RGB.
+
+    A truncated JPEG or PNG is refused (OpenCV would silently return an image whose missing
+    part is grey), naming the file.
+    """
     path = _exists(path)
+    cut = _truncated(path)
+    if cut:
+        raise ValueError(f"{path} is {cut}: the file was cut short (an interrupted copy or download); copy it again")
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
         raise ValueError(f"cannot decode image {path} (expected a PNG or JPEG RGB image)")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
-def read_depth(path: str | Path, depth_scale: float = 1000.0) -> np.ndarray:
-    """A 16-bit depth PNG as ``(H, W) float64`` metres (raw value / ``depth_scale``; 0 = none)."""
+# What real datasets write where a depth sensor measured nothing: 0 everywhere, and the largest
+# 16-bit value 65535 in 7-Scenes (part of 3DMatch) and in some ScanNet / 3DMatch exports.
+INVALID_DEPTH = 65535
+# Plausible median depth (m) of one depth frame of an indoor RGB-D dataset.
+INDOOR_DEPTH_RANGE = (0.1, 20.0)
+# Longest plausible translation (m) of a camera pose of an indoor dataset (world frames of
+# 3DMatch, 7-Scenes, ScanNet scenes span a few metres to a few tens of metres).
+INDOOR_MAX_TRANSLATION = 100.0
+
+
+def depth_units_hint(median: float, expected: tuple[float, float], depth_scale: float | None = None) -> str:
+    """Why a median depth (m) outside ``expected = (lo, hi)`` is likely in other units."""
+    lo, hi = expected
+    centre = np.sqrt(lo * hi)
+    k = int(np.round(np.log10(median / centre) / 3)) * 3 if median > 0 else 0
+    k = k or (3 if median > hi else -3)
+    if k == 3:
+        what = "millimetres read as metres"
+    elif k == -3:
+        what = "metres divided by 1000 once too often (or kilometres)"
+    else:
+        what = f"values off by a factor 10^{k}"
+    scale = "" if depth_scale is None else (
+        f"; depth_scale (raw value per metre) is {depth_scale:g}, try {depth_scale * 10.0 ** k:g}")
+    return f"it looks like {what}{scale}"
+
+
+def read_depth(path: str | Path, depth_scale: float = 1000.0, invalid: int | None = None,
+               expected: tuple[float, float] | None = None) -> np.ndarray:
+    """A 16-bit depth PNG as ``(H, W) float64`` metres (raw value / ``depth_scale``; 0 = none).
+
+    ``invalid``: a raw value that marks "no measurement" besides 0 (``INVALID_DEPTH`` = 65535 in
+    7-Scenes / 3DMatch / ScanNet), read as 0 (a hole) rather than 65.5 m. ``expected``: the
+    ``(lo, hi)`` range in metres the median of the valid depths must fall in (the dataset's
+    scene depths); outside it the file is refused with a units hint (e.g. millimetres read
+    as metres: a wrong ``depth_scale``). A truncated PNG is refused naming the file.
+    """
     path = _exists(path)
+    cut = _truncated(path)
+    if cut:
+        raise ValueError(f"{path} is {cut}: the file was cut short (an interrupted copy or download); copy it again")
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if raw is None or raw.ndim != 2:
         raise ValueError(f"cannot read {path} as a single-channel 16-bit depth PNG")
     if raw.dtype == np.uint8:
         raise ValueError(f"{path} is an 8-bit image, not a 16-bit depth PNG (depth in units of 1/{depth_scale:g} m); "
                          "an 8-bit picture of depth is a visualisation and has lost the metric values")
-    return raw.astype(np.float64) / depth_scale
+    depth = raw.astype(np.float64) / depth_scale
+    if invalid is not None:
+        depth[raw == invalid] = 0.0
+    if expected is not None:
+        valid = depth[depth > 0]
+        if valid.size:
+            median = float(np.median(valid))
+            if not expected[0] <= median <= expected[1]:
+                raise ValueError(
+                    f"{path}: the median depth {median:.4g} m is outside the {expected[0]:g}..{expected[1]:g} m "
+                    f"expected for this dataset; {depth_units_hint(median, expected, depth_scale)}")
+    return depth
 
 
-def read_pose_txt(path: str | Path) -> np.ndarray:
-    """A 4 x 4 pose written as 4 rows of 4 numbers."""
+def read_pose_txt(path: str | Path, max_translation: float | None = None) -> np.ndarray:
+    """A 4 x 4 pose written as 4 rows of 4 numbers, checked and made rigid.
+
+    The rotation is replaced by its nearest rotation when it is off orthonormal by up to
+    ``cameras.ORTHO_FIX`` (1e-2; 7-Scenes / 3DMatch pose files are orthonormal only to ~3e-4).
+    Above ``cameras.ORTHO_WARN`` (1e-4) that is said in a ``RuntimeWarning`` naming the file,
+    once per folder (a scene's pose files are all written alike). Refused, naming the file:
+    not 4 x 4 numbers, a transposed pose (translation in the bottom row), a last row other
+    than ``0 0 0 1``, a reflection or a matrix farther from a rotation, and (with
+    ``max_translation`` in metres) a translation longer than that (millimetres read as metres).
+    """
     path = _exists(path)
     try:
         T = np.loadtxt(path, dtype=np.float64, ndmin=2)
@@ -49,7 +148,27 @@ def read_pose_txt(path: str | Path) -> np.ndarray:
         raise ValueError(f"cannot read {path} as a 4 x 4 pose of numbers: {exc}") from None
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise ValueError(f"{path} does not hold a finite 4 x 4 pose (got shape {T.shape})")
-    return T
+    return checked_pose(T, path, max_translation)
+
+
+_WARNED_POSE_FOLDERS: set[str] = set()
+
+
+def checked_pose(T: np.ndarray, path: str | Path, max_translation: float | None = None) -> np.ndarray:
+    """The pose ``T`` read from ``path`` through :func:`~freereg_lib.cameras.check_pose`
+    (see :func:`read_pose_txt`), errors and the warning naming the file."""
+    from .. import cameras
+
+    out = cameras.check_pose(T, str(path), max_translation=max_translation, warn=False)
+    ortho = cameras.orthonormality(np.asarray(T, dtype=np.float64)[:3, :3])
+    folder = str(Path(path).resolve().parent)
+    if ortho > cameras.ORTHO_WARN and folder not in _WARNED_POSE_FOLDERS:
+        _WARNED_POSE_FOLDERS.add(folder)
+        warnings.warn(f"{path}: R is orthonormal only to {ortho:.1e} (max |R^T R - I|, above "
+                      f"{cameras.ORTHO_WARN:g}); re-orthonormalised (the nearest rotation, by SVD; up to "
+                      f"{cameras.ORTHO_FIX:g} is accepted). Further pose files in {folder} are fixed the same "
+                      "way without a warning", RuntimeWarning, stacklevel=3)
+    return out
 
 
 def read_redwood_log(path: str | Path) -> dict[int, np.ndarray]:

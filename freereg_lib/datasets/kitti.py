@@ -30,8 +30,14 @@ depth camera placed at camera 2 of frame ``j`` with the image's intrinsics;
 ``T_cam_pc = T_cam2_velo @ inv(T_world_velo_i) @ T_world_velo_j``. Pairs: every
 ``frame_step``-th frame of each drive, ``i < j``, LiDAR centres less than 10 m apart. The
 image's true depth is scan ``i`` projected into camera 2 and densified with IP-Basic's
-multi-scale fill, as the official evaluation does. The paper's 342 pairs (4 scenes) come
-with the official FreeReg data, which this loader does not read.
+multi-scale fill, as the official evaluation does. The pair's ``sensor_depth`` (the depth
+frame's own sensor depth) is scan ``j`` projected onto the depth camera (camera 2 of frame
+``j``) with :func:`~freereg_lib.projection.project_to_depth`, sparse (0 = no LiDAR return;
+the pipeline densifies it per ``cfg.densify``): KITTI raw has no per-frame LiDAR depth map
+of its own (KITTI-DC's ``velodyne_raw`` maps are this projection), so the loader builds it
+from the 360-degree scan, keeping the points in front of the camera (0.1 m and beyond). The
+paper's 342 pairs (4 scenes) come with the official FreeReg data, which this loader does
+not read.
 """
 from __future__ import annotations
 
@@ -181,11 +187,13 @@ class KittiDC(PairSource):
         size = image.shape[:2]
         poses = self.poses(drive)
         raw_gt, _ = projection.project_to_depth(self.scan(drive, i), K, T_cam2_velo, size, depth_min=0.1)
+        scan_j = self.scan(drive, j)
+        sensor_depth, _ = projection.project_to_depth(scan_j, K, T_cam2_velo, size, depth_min=0.1)
         return Pair(
-            image=image, K_image=K, points=self.scan(drive, j), K_depth=K.copy(), depth_size=size,
+            image=image, K_image=K, points=scan_j, K_depth=K.copy(), depth_size=size,
             T_pc_sensor=cameras.invert(T_cam2_velo),
             T_cam_pc=T_cam2_velo @ cameras.invert(poses[i]) @ poses[j],
-            depth_gt=densify.densify(raw_gt, "multiscale"),
+            depth_gt=densify.densify(raw_gt, "multiscale"), sensor_depth=sensor_depth,
             name=f"kitti/{entry.key}",
             meta={"dataset": "kitti", "scene": drive, "frame_image": i, "frame_cloud": j,
                   "distance": entry.score, "outdoor": True},
