@@ -83,17 +83,18 @@ class FreeRegConfig:
 def config_for(dataset: str, kitti_trans_threshold: float = 3.0, **changes) -> FreeRegConfig:
     """The paper's configuration for ``dataset``.
 
-    ``dataset`` is one of ``3dmatch``, ``scannet``, ``icl``, ``synthetic_indoor`` (indoor
+    ``dataset`` is one of ``3dmatch``, ``scannet``, ``demo`` (the official demo pair:
+    ScanNet's setting, as its ``config/demo.yaml``), ``icl``, ``synthetic_indoor`` (indoor
     settings) or ``kitti``, ``synthetic_outdoor`` (outdoor settings). KITTI's RR translation
     threshold is 3 m in the paper and 4 m in the official code; pass
     ``kitti_trans_threshold=4.0`` for the latter.
     """
     name = dataset.lower().replace("-", "_")
-    indoor = {"3dmatch", "scannet", "icl", "synthetic_indoor", "synthetic", "indoor"}
+    indoor = {"3dmatch", "scannet", "demo", "icl", "synthetic_indoor", "synthetic", "indoor"}
     outdoor = {"kitti", "kitti_dc", "synthetic_outdoor", "outdoor"}
     if name in indoor:
         base = FreeRegConfig()
-        if name == "scannet":
+        if name in ("scannet", "demo"):  # the official config/demo.yaml is scannet.yaml's setting
             base = base.override(depth_max=15.0)
     elif name in outdoor:
         base = FreeRegConfig(
