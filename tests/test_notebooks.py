@@ -3,7 +3,7 @@
 * Every notebook under ``notebooks/`` is committed with outputs stripped, a ``python3``
   kernelspec and a first code cell tagged ``parameters`` that papermill can read.
 * Each notebook runs through papermill with non-default parameters (another seed, fewer pairs,
-  the tiny backend for 01, the embedded ICL sample for 02 and 04) into a temporary
+  the tiny backend for 01, the embedded ICL sample for 02 and 04, a demo-layout pair for 04) into a temporary
   ``out_dir`` / ``figures_dir``; the tables it writes (CSV) and figures (PNG) must be there,
   and the metric columns of the tables must hold finite numbers.
 * ``python -m freereg_lib.reproduce --quick`` prints a Markdown table of FMR / IR / IN / RR.
@@ -63,6 +63,12 @@ RUNS = {
     "04_benchmark-outdoor-cached": dict(
         params={"dataset": "synthetic_outdoor", "seed": 2, "n_pairs": 1, "cache_dir": "<tmp>/cache"},
         knobs={"ransac_iters": 5000, "n_failure_cases": 1},
+    ),
+    # The official demo's layout (written by the test: a rendered room, its own cameras), as
+    # dataset="demo": config_for("demo") and the loader through the notebook (issue 13).
+    "04_benchmark-demo": dict(
+        params={"dataset": "demo", "data_root": "<tmp>/demo", "seed": 1, "n_pairs": 1},
+        knobs={"ransac_iters": 5000, "n_failure_cases": 1}, setup="demo",
     ),
 }
 
@@ -138,6 +144,10 @@ def test_notebook_runs_with_other_parameters(run, tmp_path):
     params.update({k: v for k, v in spec["knobs"].items() if k in declared})
     out_dir, figures_dir = tmp_path / "out", tmp_path / "figures"
     params.update(out_dir=str(out_dir), figures_dir=str(figures_dir))
+    if spec.get("setup") == "demo":
+        from test_loaders import make_demo
+
+        make_demo(tmp_path / "demo", rgb_size=(120, 160), dpt_size=(60, 80))
 
     papermill.execute_notebook(
         str(path), str(tmp_path / f"{stem}.executed.ipynb"), parameters=params,
@@ -172,7 +182,7 @@ def _check_benchmark_outputs(out_dir: Path, params: dict) -> None:
     rows = batch.read_rows(out_dir)
     assert rows and len({r["pair"] for r in rows}) == params["n_pairs"]
     results = pd.read_csv(out_dir / "results.csv")
-    if params["dataset"] == "icl":  # the stub has no diffusion features for real frames: FreeReg-G only
+    if params["dataset"] in ("icl", "demo"):  # the stub has no diffusion features for real frames: FreeReg-G only
         assert set(results["method"]) == {"FreeReg-G"}
         assert set(results["solver"]) == {"kabsch", "pnp"}
     else:
