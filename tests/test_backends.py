@@ -111,23 +111,46 @@ def test_official_resize_rule():
     assert official_resize_hw(968, 1296) == (512, 704)
 
 
-def test_depth_normalisation_matches_official_formula():
-    rng = np.random.default_rng(0)
-    d = rng.uniform(0.5, 6.0, (40, 50))
-    d[0, :10] = 0.0
-    valid = d > 0
-    d2, d85 = np.percentile(d[valid], [2, 85])
-    expect = np.clip((1 - (d - d2) / (d85 - d2)) * 255, 0, 255).astype(np.uint8)
+def test_depth_hint_percentiles_over_all_pixels_holes_come_out_255():
+    """The official normalisation on hand-made maps with holes (values computed by hand).
+
+    4 x 5 map, 4 holes and 16 depths 1, 2, 3, 4 m (4 each): over ALL 20 pixels the 2nd
+    percentile is 0 (a hole) and the 85th is 4, so x = 1 - d / 4: holes 255, 1 m -> 191.25 ->
+    191, 2 m -> 127, 3 m -> 63, 4 m -> 0. (Over valid pixels only, the old rule, 1 m would be
+    255, 2 m 170, holes 0.)"""
+    d = np.array([[0, 1, 2, 3, 4],
+                  [1, 0, 2, 3, 4],
+                  [1, 2, 0, 3, 4],
+                  [1, 2, 3, 0, 4]], dtype=np.float64)
+    expect = np.array([[255, 191, 127, 63, 0],
+                       [191, 255, 127, 63, 0],
+                       [191, 127, 255, 63, 0],
+                       [191, 127, 63, 255, 0]], dtype=np.uint8)
     got = depth_to_uint8(d)
-    assert got.dtype == np.uint8
-    assert np.array_equal(got[valid], expect[valid])
-    assert np.all(got[~valid] == 0)
-    assert got[valid][d[valid] <= d2].min() == 255 or np.all(d[valid] > d2)
-    assert np.all(got[d >= d85] == 0)
-    hint = depth_hint(d, (64, 128))
+    assert got.dtype == np.uint8 and np.array_equal(got, expect)
+    # One hole among 20: sorted 0, 1, 2 x 15, 5 x 3; d2 = 0.38 * 1 = 0.38 (index 0.38),
+    # d85 = 2 + 0.15 * (5 - 2) = 2.45 (index 16.15), span 2.07. The hole: x > 1 -> 255;
+    # 1 m: 255 (1 - 0.62 / 2.07) = 178.6 -> 178; 2 m: 255 (1 - 1.62 / 2.07) = 55.4 -> 55; 5 m: 0.
+    d = np.array([0.0, 1.0] + [2.0] * 15 + [5.0] * 3).reshape(4, 5)
+    expect = np.array([255, 178] + [55] * 15 + [0] * 3, dtype=np.uint8).reshape(4, 5)
+    assert np.array_equal(depth_to_uint8(d), expect)
+    # The hint: 3 equal channels in [0, 1], the official resize, holes bright.
+    hint = depth_hint(np.kron(d, np.ones((16, 16))), (64, 128))
     assert hint.shape == (3, 64, 128) and hint.dtype == np.float32
-    assert 0.0 <= hint.min() and hint.max() <= 1.0
-    assert np.array_equal(hint[0], hint[2])
+    assert np.array_equal(hint[0], hint[1]) and np.array_equal(hint[0], hint[2])
+    assert hint[0, 0, 0] == 1.0 and 0.0 <= hint.min() and hint.max() <= 1.0
+
+
+def test_depth_hint_flat_maps_give_no_nan():
+    """d85 == d2: x = 1 where d <= d2, 0 above (the limit of the formula), never NaN."""
+    assert np.array_equal(depth_to_uint8(np.zeros((3, 4))), np.full((3, 4), 255, np.uint8))
+    assert np.array_equal(depth_to_uint8(np.full((3, 4), 2.5)), np.full((3, 4), 255, np.uint8))
+    d = np.zeros((10, 10))
+    d[0, :5] = 3.0  # 95 % holes: d2 = d85 = 0, the depths lie above
+    got = depth_to_uint8(d)
+    assert np.all(got[0, :5] == 0) and np.all(got[d == 0] == 255)
+    d[1, 1] = np.nan  # non-finite depth is a hole
+    assert depth_to_uint8(d)[1, 1] == 255
 
 
 # ---------------------------------------------------------------------------------------

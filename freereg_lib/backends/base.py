@@ -202,24 +202,26 @@ def resize_to(image: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
 def depth_to_uint8(depth: np.ndarray) -> np.ndarray:
     """The official depth normalisation for the depth ControlNet, ``(H, W) uint8``.
 
-    ``d2``, ``d85`` = 2nd and 85th percentiles of the depth; ``x = 1 - (d - d2)/(d85 - d2)``;
-    ``uint8(clip(255 x))`` (near = bright, as ControlNet's depth maps). One deviation: the
-    percentiles are taken over valid pixels only (depth > 0 and finite) and pixels without
-    depth are set to 0 (far); the official code takes them over every pixel, which is the
-    same on the densified maps it is fed but lets holes pull ``d2`` to 0 otherwise.
+    ``d2``, ``d85`` = 2nd and 85th percentiles of the depth over ALL pixels, holes (0)
+    included, as the official code; ``x = 1 - (d - d2) / (d85 - d2)``;
+    ``uint8(clip(255 x))`` (near = bright, as ControlNet's depth maps). Holes therefore come
+    out at 255 ("near") whenever ``d2 >= 0``, and many holes pull ``d2`` to 0. This matters on
+    3DMatch, whose raw sensor depth keeps its holes.
+
+    Non-finite depth (NaN, inf) is treated as a hole (0) before the percentiles; the official
+    code never sees it. A flat map (``d85 == d2``, e.g. all holes or one constant depth) would
+    divide by zero: then ``x = 1`` where ``d <= d2`` and ``x = 0`` above (the limit of the
+    formula as the span shrinks to 0+), so the result is 255 / 0, never NaN.
     """
     d = np.asarray(depth, dtype=np.float64)
-    valid = np.isfinite(d) & (d > 0)
-    out = np.zeros(d.shape, dtype=np.uint8)
-    if not valid.any():
-        return out
-    d2, d85 = np.percentile(d[valid], [2, 85])
+    d = np.where(np.isfinite(d), d, 0.0)
+    d2, d85 = np.percentile(d, [2, 85])
     span = d85 - d2
-    if span <= 1e-12:
-        span = 1e-12
-    x = 1.0 - (d - d2) / span
-    out[valid] = np.clip(x[valid] * 255.0, 0, 255).astype(np.uint8)
-    return out
+    if span > 0:
+        x = 1.0 - (d - d2) / span
+    else:
+        x = np.where(d <= d2, 1.0, 0.0)
+    return np.clip(x * 255.0, 0, 255).astype(np.uint8)
 
 
 def depth_hint(depth: np.ndarray, resize_hw: tuple[int, int]) -> np.ndarray:
