@@ -220,15 +220,88 @@ def test_fcgf_through_geometric_features(tmp_path, monkeypatch):
     monkeypatch.delenv("FREEREG_WEIGHTS", raising=False)
     cfg = FreeRegConfig(geometric="fcgf", voxel_size=0.05,
                         extra={"weights_dir": str(tmp_path)})
-    with pytest.raises(MissingWeightsError, match="2019-08-16_19-21-47.pth"):
+    with pytest.raises(MissingWeightsError, match="2019-08-19_06-17-41.pth"):
         geometric_features(np.zeros((10, 3)), cfg)
     torch.manual_seed(0)
     (tmp_path / "fcgf").mkdir()
     torch.save({"state_dict": ResUNetBN2C(conv1_kernel_size=7).state_dict()},
-               tmp_path / "fcgf" / "2019-08-16_19-21-47.pth")
+               tmp_path / "fcgf" / "2019-08-19_06-17-41.pth")
     pts = room_corner(np.random.default_rng(2), 2000)
     down, f = geometric_features(pts, cfg)
     assert f.shape == (len(down), 32)
+
+
+def test_fcgf_3dmatch_checkpoint_is_the_2_5_cm_model():
+    """The paper's footnote: the 2.5 cm 3DMatch model, 2019-08-19_06-17-41.pth (FCGF's
+    2019-08-16_19-21-47.pth is its 5 cm model)."""
+    from freereg_lib.backends.fcgf import CHECKPOINTS
+
+    assert CHECKPOINTS["3dmatch"] == dict(file="2019-08-19_06-17-41.pth", conv1_kernel_size=7, voxel=0.025)
+    assert CHECKPOINTS["kitti"]["file"] == "KITTI-v0.3-ResUNetBN2C-conv1-5-nout32.pth"
+
+
+class _RunsCode:
+    """Unpickling this would call ``exec`` (what a malicious checkpoint does)."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (exec, (f"open({self.marker!r}, 'w').write('ran')",))
+
+
+def test_fcgf_checkpoint_that_would_run_code_is_refused_without_running_it(tmp_path):
+    torch = pytest.importorskip("torch")
+    from freereg_lib.backends.fcgf import CheckpointRefused, ResUNetBN2C, load_fcgf
+
+    marker = tmp_path / "pwned"
+    state = ResUNetBN2C(conv1_kernel_size=7).state_dict()
+    for legacy in (False, True):
+        path = tmp_path / f"evil{int(legacy)}.pth"
+        torch.save({"state_dict": state, "config": _RunsCode(marker)}, path,
+                   _use_new_zipfile_serialization=not legacy)
+        with pytest.raises(CheckpointRefused) as err:
+            load_fcgf(str(path))
+        assert str(path) in str(err.value) and "not a plain state-dict checkpoint" in str(err.value)
+        assert "builtins.exec" in str(err.value)
+        assert not marker.exists()
+
+
+class _EasyDict(dict):
+    """What ``easydict.EasyDict`` pickles like: a dict whose items are also attributes."""
+
+    def __init__(self, d=None):
+        super().__init__(d or {})
+        for k, v in (d or {}).items():
+            setattr(self, k, v)
+
+
+_EasyDict.__module__, _EasyDict.__qualname__, _EasyDict.__name__ = "easydict", "EasyDict", "EasyDict"
+
+
+def test_fcgf_checkpoint_with_its_easydict_config_loads(tmp_path, monkeypatch):
+    """FCGF's trainer pickles its config as an ``easydict.EasyDict``: read as an inert dict."""
+    import sys
+    import types
+
+    torch = pytest.importorskip("torch")
+    from freereg_lib.backends.fcgf import ResUNetBN2C, _load_checkpoint_file, load_fcgf
+
+    mod = types.ModuleType("easydict")
+    mod.EasyDict = _EasyDict
+    monkeypatch.setitem(sys.modules, "easydict", mod)
+    torch.manual_seed(0)
+    net = ResUNetBN2C(conv1_kernel_size=7)
+    for legacy in (False, True):
+        path = tmp_path / f"fcgf{int(legacy)}.pth"
+        torch.save({"state_dict": net.state_dict(), "config": _EasyDict({"voxel_size": 0.025}),
+                    "best_val": np.float64(0.9)}, path, _use_new_zipfile_serialization=not legacy)
+        monkeypatch.delitem(sys.modules, "easydict")  # not installed where it is loaded
+        ckpt = _load_checkpoint_file(str(path))
+        assert ckpt["config"]["voxel_size"] == 0.025 and float(ckpt["best_val"]) == 0.9
+        net2 = load_fcgf(str(path))
+        assert all(torch.equal(a, b) for a, b in zip(net.state_dict().values(), net2.state_dict().values()))
+        monkeypatch.setitem(sys.modules, "easydict", mod)
 
 
 @pytest.fixture(autouse=True, scope="module")

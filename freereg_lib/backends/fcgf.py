@@ -1,7 +1,8 @@
 """FCGF (Choy et al., ICCV 2019) ResUNetBN2C in plain PyTorch, with MinkowskiEngine semantics.
 
 The paper's geometric features are FCGF's 32-d features from the official checkpoints
-(3DMatch: ``2019-08-16_19-21-47.pth``, conv1 kernel 7, voxel 0.025 m; KITTI:
+(3DMatch: ``2019-08-19_06-17-41.pth``, the 2.5 cm model of the paper's footnote, conv1
+kernel 7, voxel 0.025 m (FCGF's ``2019-08-16_19-21-47.pth`` is its 5 cm model); KITTI:
 ``KITTI-v0.3-ResUNetBN2C-conv1-5-nout32.pth``, conv1 kernel 5, voxel 0.3 m; both linked from
 the FCGF repository's README). Those are MinkowskiEngine (ME) networks, and ME does not
 build on this CPU machine; spconv installs, but its strided convolutions create output sites
@@ -45,7 +46,8 @@ import numpy as np
 CHANNELS = (None, 32, 64, 128, 256)
 TR_CHANNELS = (None, 64, 64, 64, 128)  # ResUNetBN2C
 CHECKPOINTS = {
-    "3dmatch": dict(file="2019-08-16_19-21-47.pth", conv1_kernel_size=7, voxel=0.025),
+    # The 2.5 cm model (the paper's footnote); "2019-08-16_19-21-47.pth" is FCGF's 5 cm one.
+    "3dmatch": dict(file="2019-08-19_06-17-41.pth", conv1_kernel_size=7, voxel=0.025),
     "kitti": dict(file="KITTI-v0.3-ResUNetBN2C-conv1-5-nout32.pth", conv1_kernel_size=5,
                   voxel=0.3),
 }
@@ -265,35 +267,94 @@ def ResUNetBN2C(**kw):
     return modules()[3](**kw)
 
 
+class CheckpointRefused(ValueError):
+    """A checkpoint file that is not a plain state-dict checkpoint (it pickles something
+    other than tensors, containers and the known config objects); nothing in it was run."""
+
+
+class _Loose(dict):
+    """Inert stand-in for the config objects FCGF checkpoints pickle (``easydict.EasyDict``,
+    ``argparse.Namespace``): their items and attributes become dict entries."""
+
+    def __setstate__(self, state):
+        if isinstance(state, tuple) and len(state) == 2:  # (state, slotstate)
+            state = {**(state[0] or {}), **(state[1] or {})}
+        if isinstance(state, dict):
+            self.update(state)
+
+
+# What a plain checkpoint may pickle: tensors (torch's rebuild functions; storages are
+# resolved by torch itself), ordered dicts, numpy scalars / arrays and the two config types
+# FCGF's trainer saves (read as inert dicts). Anything else is refused BEFORE it is called.
+_ALLOWED_GLOBALS = {
+    ("collections", "OrderedDict"), ("torch._utils", "_rebuild_tensor"), ("torch._utils", "_rebuild_tensor_v2"),
+    ("torch._utils", "_rebuild_parameter"), ("torch._utils", "_rebuild_parameter_with_state"),
+    ("torch", "Size"), ("torch", "device"), ("builtins", "set"), ("builtins", "frozenset"),
+    ("_codecs", "encode"), ("numpy", "dtype"), ("numpy", "ndarray"),
+    ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
+    ("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
+}
+_CONFIG_GLOBALS = {("easydict", "EasyDict"), ("argparse", "Namespace")}
+
+
+def _restricted_pickle_module():
+    import importlib
+    import pickle
+
+    import _compat_pickle
+
+    class Unpickler(pickle.Unpickler):
+        def find_class(self, module, name):
+            # Protocol 2 (torch.save's) writes Python 2 names, e.g. __builtin__.
+            if (module, name) in _compat_pickle.NAME_MAPPING:
+                module, name = _compat_pickle.NAME_MAPPING[(module, name)]
+            module = _compat_pickle.IMPORT_MAPPING.get(module, module)
+            if (module, name) in _CONFIG_GLOBALS:
+                return _Loose
+            if (module, name) in _ALLOWED_GLOBALS:
+                if module.startswith("numpy.core"):  # NumPy 2 renamed numpy.core to numpy._core
+                    module = "numpy._core" + module[len("numpy.core"):]
+                return getattr(importlib.import_module(module), name)
+            raise pickle.UnpicklingError(f"global {module}.{name} is not allowed")
+
+    class Module:
+        __name__ = "freereg_restricted_pickle"
+        UnpicklingError = pickle.UnpicklingError
+
+        @staticmethod
+        def load(file, **kw):
+            return Unpickler(file, **kw).load()
+
+    Module.Unpickler = Unpickler
+    return Module
+
+
 def _load_checkpoint_file(path):
-    """``torch.load`` of an FCGF checkpoint. Its ``config`` entry is a pickled object
-    (argparse / easydict); classes that are not importable here are read as plain dicts."""
+    """The dict of an FCGF checkpoint file, never running code from it.
+
+    First ``torch.load(weights_only=True)``; FCGF's own checkpoints also pickle their training
+    config (an ``easydict.EasyDict``), which that refuses, so a second, equally restricted
+    reading allows exactly the globals a plain checkpoint needs plus those config types (read
+    as inert dicts). A file that pickles anything else raises :class:`CheckpointRefused` naming
+    the file; nothing it references is called.
+    """
     import pickle
 
     torch = _torch()
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
-    except Exception:
+    except pickle.UnpicklingError:
         pass
-
-    class _Loose(dict):
-        def __setstate__(self, state):
-            if isinstance(state, dict):
-                self.update(state)
-
-    class _Unpickler(pickle.Unpickler):
-        def find_class(self, module, name):
-            try:
-                return super().find_class(module, name)
-            except (ImportError, AttributeError):
-                return _Loose
-
-    class _PickleModule:
-        Unpickler = _Unpickler
-        load = pickle.load
-
-    # Only for checkpoints you trust: this executes pickled code like any torch.load.
-    return torch.load(path, map_location="cpu", weights_only=False, pickle_module=_PickleModule)
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False, pickle_module=_restricted_pickle_module())
+    except pickle.UnpicklingError as exc:
+        raise CheckpointRefused(
+            f"{path} is not a plain state-dict checkpoint ({exc}); it was not loaded, since unpickling it "
+            "could run arbitrary code. An FCGF checkpoint holds tensors, a state_dict and a config "
+            "(easydict / argparse). If you trust the file, convert it once to a plain one: python -c "
+            "\"import torch; c = torch.load('IN.pth', weights_only=False); torch.save({'state_dict': "
+            "c['state_dict']}, 'OUT.pth')\""
+        ) from None
 
 
 def load_fcgf(checkpoint, conv1_kernel_size: int | None = None, device="cpu"):
