@@ -9,7 +9,9 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
-INDOOR_PROMPT = "best quality, a photo of a room, furniture, household items"
+# The official configs' prompts; the backends append ", best quality" (the official a_prompt), so
+# the conditional text is exactly "a photo of a room, furniture, household items, best quality".
+INDOOR_PROMPT = "a photo of a room, furniture, household items"
 OUTDOOR_PROMPT = "a vehicle camera photo of street view, trees, cars, people, house, road, sky"
 NEGATIVE_PROMPT = "lowres, bad anatomy, bad hands, cropped, worst quality"
 
