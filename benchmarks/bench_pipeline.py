@@ -13,7 +13,8 @@ Modes
     gpu  The same chain with full-size Stable Diffusion v1.5 UNet, depth ControlNet v1.1,
          VAE, CLIP ViT-L/14 text encoder and ZoeDepth (ZoeD_N, BEiT-L 384), all built from
          their published configurations with random weights (speed does not depend on the
-         weights, and nothing is downloaded), float16 on CUDA; the stub chain and the
+         weights, and nothing is downloaded), float16 on CUDA (``--dtype``; the library's
+         default is the paper's float32); the stub chain and the
          matching micro-benchmark (CPU and CUDA) on the same machine. Random weights give
          meaningless features, so the solvers there run all their iterations: a worst case.
     ci   Tiny sizes (a 96 x 128 pair, 500 RANSAC iterations, a 64 x 64 tiny backend with 5
@@ -515,8 +516,9 @@ class _Sanitized:
 
 def build_fullsize_backend(cfg, device: str, resize_hw):
     """A ``tiny``-kind backend whose models are full-size SD v1.5 / ControlNet v1.1 depth /
-    VAE / CLIP text / ZoeD_N with random weights (float16 on CUDA, float32 on the CPU;
-    ZoeDepth always float32, as the library runs it)."""
+    VAE / CLIP text / ZoeD_N with random weights in ``cfg.dtype`` on CUDA (the gpu mode's
+    ``--dtype``, float16 by default), float32 on the CPU; ZoeDepth always float32, as the
+    library runs it)."""
     import torch
     from diffusers import AutoencoderKL, ControlNetModel, UNet2DConditionModel
     from transformers import BeitConfig, CLIPTextConfig, CLIPTextModel, ZoeDepthConfig, \
@@ -526,7 +528,8 @@ def build_fullsize_backend(cfg, device: str, resize_hw):
     from freereg_lib.backends.torch_backends import TinyBackend, resolve_device
     from freereg_lib.backends.zoedepth import ZoeDepthEstimator, _processor_class
 
-    dev, dtype = resolve_device(device)
+    dev, _ = resolve_device(device)
+    dev, dtype = resolve_device(device, cfg.dtype if dev.type == "cuda" else "float32")
     torch.manual_seed(cfg.seed)
     tok = tiny_tokenizer()  # ids < 514 < 49408: fine for a speed test, no vocabulary file
     cn_cfg = {k: v for k, v in SD15_UNET_CONFIG.items()
@@ -647,6 +650,9 @@ def parse_args(argv=None):
                    help="also time the diffusion stages on B copies of a pair in one call "
                         "(cfg.pair_batch = B), reported per pair (time / B)")
     p.add_argument("--device", default=None, help="gpu mode: the torch device (default cuda)")
+    p.add_argument("--dtype", default="float16", choices=("float16", "bfloat16", "float32"),
+                   help="gpu mode: dtype of the full-size diffusion models on CUDA (default float16, as "
+                        "the recorded numbers; float32 is the library's and the paper's default)")
     p.add_argument("--resize", default=None,
                    help="gpu mode: diffusion input HxW (default 512x704); smaller sizes are "
                         "for smoke tests only")
@@ -695,6 +701,8 @@ def main(argv=None) -> int:
         overrides["pca_device"] = args.pca_device
     if args.match_device is not None:
         overrides["match_device"] = args.match_device
+    if args.mode == "gpu":
+        overrides["dtype"] = args.dtype
     cfg = config_for("synthetic_indoor", **overrides)
     variants = PAPER_VARIANTS if args.variants == "paper" else None
     if variants is None:

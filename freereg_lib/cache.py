@@ -2,7 +2,7 @@
 
 The diffusion features and the monocular depth of a frame depend only on the input arrays,
 the backend and a few hyper-parameters (``t_hat``, DDIM steps, guidance, prompts, resize,
-seed, indoor/outdoor model). Everything an ablation over the fusion weight ``w``, the layer
+seed, indoor/outdoor model, the UNet variant, the ControlNet checkpoint, the dtype). Everything an ablation over the fusion weight ``w``, the layer
 choice, PCA, matching or the solver changes happens *after* the backend, so wrapping the
 backend in :class:`CachedBackend` makes a second run of such an ablation read the features
 from disk instead of running Stable Diffusion, ControlNet and ZoeDepth again::
@@ -31,7 +31,7 @@ from .backends.base import Backend, _hints, check_layers
 
 # The config fields that change a backend's outputs (see FreeRegConfig).
 FEATURE_FIELDS = ("outdoor", "resize_hw", "t_hat", "ddim_steps", "ddim_eta", "guidance_w",
-                  "prompt", "negative_prompt", "seed")
+                  "prompt", "negative_prompt", "seed", "sd_unet_variant", "controlnet", "dtype")
 
 
 def feature_params(cfg, resize_hw: tuple[int, int] | None = None) -> dict:

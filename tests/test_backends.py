@@ -334,7 +334,7 @@ def test_device_defaults():
     assert dev.type == "cpu" and dt == torch.float32
     if torch.cuda.is_available():
         dev, dt = resolve_device(None)
-        assert dev.type == "cuda" and dt == torch.float16
+        assert dev.type == "cuda" and dt == torch.float32  # the official precision, on CUDA too
 
 
 def test_unknown_backend_name():

@@ -446,17 +446,39 @@ def _to(module, device, dtype):
 
 
 def load_real_diffusion(sd_path: str, controlnet_path: str, cfg, device, dtype,
-                        resize_hw) -> DiffusionFeatures:
+                        resize_hw, unet_variant: str = "non_ema",
+                        controlnet_config: str | None = None) -> DiffusionFeatures:
     """SD v1.5 (``unet``, ``vae``, ``text_encoder``, ``tokenizer`` sub-folders) and the
-    depth ControlNet from local folders (``local_files_only=True``)."""
+    depth ControlNet from local files (``local_files_only=True``), all in ``dtype``.
+
+    ``unet_variant``: ``"non_ema"`` loads ``unet/diffusion_pytorch_model.non_ema.*``, the
+    weights the official code uses; ``"ema"`` the folder's default (EMA) files.
+    ``controlnet_path``: a diffusers folder, or a single original-format checkpoint file
+    (``.pth`` / ``.ckpt`` / ``.safetensors``, e.g. the official ``control_v11f1p_sd15_depth_ft.pth``)
+    read by ``ControlNetModel.from_single_file`` with the architecture of the diffusers folder
+    ``controlnet_config`` (the v1.1 depth ControlNet's ``config.json``).
+    """
+    from pathlib import Path
+
     from diffusers import AutoencoderKL, ControlNetModel, UNet2DConditionModel
     from transformers import CLIPTextModel, CLIPTokenizer
 
+    from .weights import check_sd_unet_variant
+
+    variant = None if check_sd_unet_variant(unet_variant) == "ema" else "non_ema"
     kw = dict(local_files_only=True)
-    unet = UNet2DConditionModel.from_pretrained(sd_path, subfolder="unet", torch_dtype=dtype, **kw)
+    unet = UNet2DConditionModel.from_pretrained(sd_path, subfolder="unet", torch_dtype=dtype,
+                                                variant=variant, **kw)
     vae = AutoencoderKL.from_pretrained(sd_path, subfolder="vae", torch_dtype=dtype, **kw)
     text = CLIPTextModel.from_pretrained(sd_path, subfolder="text_encoder", torch_dtype=dtype, **kw)
     tok = CLIPTokenizer.from_pretrained(sd_path, subfolder="tokenizer", **kw)
-    controlnet = ControlNetModel.from_pretrained(controlnet_path, torch_dtype=dtype, **kw)
+    if Path(controlnet_path).is_file():
+        if controlnet_config is None:
+            raise ValueError(f"{controlnet_path} is a single-file ControlNet checkpoint: give "
+                             "controlnet_config, the diffusers folder whose config.json describes it")
+        controlnet = ControlNetModel.from_single_file(str(controlnet_path), config=str(controlnet_config),
+                                                      torch_dtype=dtype, **kw)
+    else:
+        controlnet = ControlNetModel.from_pretrained(controlnet_path, torch_dtype=dtype, **kw)
     mods = [m.to(device).eval() for m in (unet, controlnet, vae, text)]
     return DiffusionFeatures(*mods[:3], mods[3], tok, cfg, device, dtype, resize_hw)

@@ -6,10 +6,15 @@ needs depth never loads Stable Diffusion. The ``real`` backend checks at constru
 every weight folder it will need exists, so a missing one fails at once with
 :class:`~.base.MissingWeightsError`.
 
-Device: ``device=None`` picks CUDA when available, else the CPU; float16 on CUDA, float32 on
-the CPU (``dtype=`` overrides). Asking for CUDA without CUDA raises a ``RuntimeError``.
+Device: ``device=None`` picks CUDA when available, else the CPU. Precision: float32 on every
+device, as the official code runs; ``cfg.dtype = "float16"`` or ``"bfloat16"`` is a speed-up
+on CUDA that changes the features (README, "Faster runs"); the ``dtype=`` argument of the
+backends, when given, wins over ``cfg.dtype``. ZoeDepth always runs in float32. Asking for CUDA
+without CUDA raises a ``RuntimeError``.
 """
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 
@@ -17,8 +22,12 @@ from .base import Backend, MissingWeightsError, check_device
 from . import weights as W
 
 
+DTYPES = ("float32", "float16", "bfloat16")
+
+
 def resolve_device(device: str | None = None, dtype=None):
-    """``(torch.device, torch.dtype)``: CUDA + float16 when present, else CPU + float32."""
+    """``(torch.device, torch.dtype)``: CUDA when present, else the CPU; float32 unless
+    ``dtype`` (a ``torch.dtype`` or one of :data:`DTYPES`) says otherwise, on CUDA too."""
     import torch
 
     check_device(device)
@@ -39,9 +48,14 @@ def resolve_device(device: str | None = None, dtype=None):
     if dev.type not in ("cuda", "cpu"):
         raise ValueError(f"unsupported device {device!r}; use 'cuda', 'cuda:N' or 'cpu'")
     if dtype is None:
-        dtype = torch.float16 if dev.type == "cuda" else torch.float32
+        dtype = torch.float32
     elif isinstance(dtype, str):
+        if dtype not in DTYPES:
+            raise ValueError(f"unsupported dtype {dtype!r}; use one of {DTYPES} (float32 is the "
+                             "official precision)")
         dtype = getattr(torch, dtype)
+    elif dtype not in (torch.float32, torch.float16, torch.bfloat16):
+        raise ValueError(f"unsupported dtype {dtype!r}; use one of {DTYPES}")
     return dev, dtype
 
 
@@ -54,6 +68,8 @@ def tiny_resize_hw(resize_hw: tuple[int, int]) -> tuple[int, int]:
 class _TorchBackend(Backend):
     def __init__(self, cfg, device=None, dtype=None, resize_hw=None):
         super().__init__(cfg, resize_hw)
+        if dtype is None:
+            dtype = getattr(cfg, "dtype", None)
         self.device, self.dtype = resolve_device(device, dtype)
         self._diffusion = None
         self._zoe = None
@@ -138,18 +154,25 @@ class TinyBackend(_TorchBackend):
 
 
 class RealBackend(_TorchBackend):
-    """Stable Diffusion v1.5 + ControlNet v1.1 depth + ZoeDepth from local weights.
+    """Stable Diffusion v1.5 + a depth ControlNet + ZoeDepth from local weights.
 
     Model ids: ``stable-diffusion-v1-5/stable-diffusion-v1-5`` (the old
-    ``runwayml/stable-diffusion-v1-5`` is accepted too), ``lllyasviel/control_v11f1p_sd15_depth``,
-    ``Intel/zoedepth-nyu`` (indoor) or ``Intel/zoedepth-nyu-kitti`` (``cfg.outdoor``).
-    Where they are looked for: :mod:`freereg_lib.backends.weights`. Nothing is downloaded.
+    ``runwayml/stable-diffusion-v1-5`` is accepted too), its NON-EMA UNet
+    (``cfg.sd_unet_variant = "non_ema"``, the official weights; ``"ema"`` opts into diffusers'
+    default files); the ControlNet ``cfg.controlnet``: ``lllyasviel/control_v11f1p_sd15_depth``
+    (Table 1), another model id, or a single-file original checkpoint such as the official
+    fine-tuned ``control_v11f1p_sd15_depth_ft.pth`` (FreeReg-Ft; read with diffusers'
+    ``ControlNetModel.from_single_file``, its architecture taken from the v1.1 depth folder's
+    ``config.json``); ``Intel/zoedepth-nyu`` (indoor) or ``Intel/zoedepth-nyu-kitti``
+    (``cfg.outdoor``). Where they are looked for: :mod:`freereg_lib.backends.weights`.
+    Nothing is downloaded.
 
     Args:
         cfg: the config.
-        device, dtype: see :func:`resolve_device`.
+        device, dtype: see :func:`resolve_device` (``dtype`` default: ``cfg.dtype``).
         weights_dir: folder holding the model folders (else ``cfg.extra["weights_dir"]``,
-            ``$FREEREG_WEIGHTS``, then the Hugging Face cache).
+            ``$FREEREG_WEIGHTS``, then the Hugging Face cache); a relative single-file
+            ``cfg.controlnet`` is also looked for there.
         load: which parts will be used, a subset of ``("diffusion", "mono")``; only those
             weights are required.
         zoe_id: override of the ZoeDepth model id.
@@ -157,7 +180,6 @@ class RealBackend(_TorchBackend):
     """
 
     name = "real"
-    label = "real backend (SD v1.5 + ControlNet v1.1 depth + ZoeDepth)"
 
     def __init__(self, cfg, device=None, dtype=None, weights_dir=None,
                  load=("diffusion", "mono"), zoe_id: str | None = None, resize_hw=None):
@@ -167,14 +189,28 @@ class RealBackend(_TorchBackend):
             raise ValueError(f"unknown load parts {sorted(unknown)}; use 'diffusion', 'mono'")
         self.weights_dir = W.default_weights_dir(cfg, weights_dir)
         self.zoe_id = zoe_id or (W.ZOEDEPTH_OUTDOOR_ID if cfg.outdoor else W.ZOEDEPTH_INDOOR_ID)
+        self.unet_variant = W.check_sd_unet_variant(getattr(cfg, "sd_unet_variant", "non_ema"))
+        cn = str(getattr(cfg, "controlnet", None) or W.CONTROLNET_DEPTH_ID)
+        self.controlnet_file = W.is_single_file(cn)
+        # A single file needs the v1.1 depth folder for its architecture (config.json).
+        self.controlnet_id = W.CONTROLNET_DEPTH_ID if self.controlnet_file else cn
         specs = {}
         if "diffusion" in load:
             specs["sd"] = (W.SD15_ID, W.SD15_OLD_IDS)
-            specs["controlnet"] = (W.CONTROLNET_DEPTH_ID, ())
+            specs["controlnet"] = (self.controlnet_id, ())
         if "mono" in load:
             specs["zoe"] = (self.zoe_id, ())
         self.load = tuple(load)
         self.paths = W.resolve_all(specs, self.weights_dir)
+        if "diffusion" in load:
+            W.require_sd_unet_variant(self.paths["sd"], self.unet_variant)
+            if self.controlnet_file:
+                self.paths["controlnet_file"] = W.resolve_single_file(cn, self.weights_dir)
+        cn_label = (f"ControlNet {Path(cn).name}" if self.controlnet_file
+                    else "ControlNet v1.1 depth" if cn == W.CONTROLNET_DEPTH_ID else f"ControlNet {cn}")
+        dt = str(self.dtype).replace("torch.", "")
+        self.label = (f"real backend (SD v1.5 {'non-EMA' if self.unet_variant == 'non_ema' else 'EMA'} UNet + "
+                      f"{cn_label} + ZoeDepth, {dt})")
 
     def _need(self, key: str, part: str) -> str:
         if key not in self.paths:
@@ -186,13 +222,16 @@ class RealBackend(_TorchBackend):
         from .diffusion import load_real_diffusion
 
         sd, cn = self._need("sd", "diffusion"), self._need("controlnet", "diffusion")
+        cn_file = self.paths.get("controlnet_file")
         try:
-            return load_real_diffusion(sd, cn, self.cfg, self.device, self.dtype, self.resize_hw)
+            return load_real_diffusion(sd, cn_file or cn, self.cfg, self.device, self.dtype, self.resize_hw,
+                                       unet_variant=self.unet_variant,
+                                       controlnet_config=cn if cn_file else None)
         except (OSError, ValueError, EnvironmentError) as e:
             if isinstance(e, MissingWeightsError):
                 raise
             raise W.missing_weights_error(
-                [(W.SD15_ID, [sd]), (W.CONTROLNET_DEPTH_ID, [cn])], self.weights_dir,
+                [(W.SD15_ID, [sd]), (self.controlnet_id, [cn_file or cn])], self.weights_dir,
                 reason=f"{type(e).__name__}: {e}") from e
 
     def _build_zoe(self):

@@ -24,10 +24,24 @@ CONTROLNET_DEPTH_ID = "lllyasviel/control_v11f1p_sd15_depth"
 ZOEDEPTH_INDOOR_ID = "Intel/zoedepth-nyu"
 ZOEDEPTH_OUTDOOR_ID = "Intel/zoedepth-nyu-kitti"
 
-# Only the sub-folders the diffusion features use (the full SD repo is tens of GB).
+# The official code loads SD v1.5's NON-EMA UNet weights (``v1-5-pruned.ckpt`` with
+# ``use_ema: False``); in diffusers they are the ``non_ema`` variant of the ``unet`` folder,
+# while its default files hold the EMA weights.
+SD_UNET_VARIANTS = ("non_ema", "ema")
+SD15_NON_EMA_FILES = ("unet/diffusion_pytorch_model.non_ema.safetensors",
+                      "unet/diffusion_pytorch_model.non_ema.bin")
+SD15_EMA_FILES = ("unet/diffusion_pytorch_model.safetensors", "unet/diffusion_pytorch_model.bin")
+# The fine-tuned depth ControlNet of the official repository (its configs' default since
+# 2023-11-23; the paper's FreeReg-Ft rows), an original single-file (ldm) checkpoint.
+CONTROLNET_FT_FILE = "control_v11f1p_sd15_depth_ft.pth"
+SINGLE_FILE_SUFFIXES = (".pth", ".pt", ".ckpt", ".safetensors", ".bin")
+
+# Only the files the diffusion features use (the full SD repo is tens of GB): of the UNet,
+# its config and the non-EMA weights.
 _INCLUDE = {
-    SD15_ID: '--include "model_index.json" "unet/*" "vae/*" "text_encoder/*" "tokenizer/*" '
-             '"scheduler/*"',
+    SD15_ID: '--include "model_index.json" "unet/config.json" '
+             '"unet/diffusion_pytorch_model.non_ema.safetensors" "vae/*" "text_encoder/*" '
+             '"tokenizer/*" "scheduler/*"',
 }
 
 
@@ -144,3 +158,76 @@ def resolve_all(specs: dict[str, tuple[str, tuple[str, ...]]],
     if missing:
         raise missing_weights_error(missing, weights_dir)
     return found
+
+
+def check_sd_unet_variant(variant: str) -> str:
+    """``variant`` if it is one of :data:`SD_UNET_VARIANTS`, else a ``ValueError``."""
+    if variant not in SD_UNET_VARIANTS:
+        raise ValueError(f"sd_unet_variant must be one of {SD_UNET_VARIANTS} ('non_ema': the official "
+                         f"weights; 'ema': diffusers' default files), got {variant!r}")
+    return variant
+
+
+def sd_unet_weight_file(sd_path: str | os.PathLike, variant: str = "non_ema") -> Path | None:
+    """The UNet weight file diffusers will load from the SD folder ``sd_path`` for
+    ``variant`` (safetensors first, as diffusers), or None when there is none."""
+    files = SD15_NON_EMA_FILES if check_sd_unet_variant(variant) == "non_ema" else SD15_EMA_FILES
+    for f in files:
+        if (Path(sd_path) / f).is_file():
+            return Path(sd_path) / f
+    return None
+
+
+def require_sd_unet_variant(sd_path: str | os.PathLike, variant: str) -> Path:
+    """The UNet weight file of ``variant`` in ``sd_path``; a :class:`MissingWeightsError`
+    naming the files to download (and the EMA opt-in) when the folder has none."""
+    found = sd_unet_weight_file(sd_path, variant)
+    if found is not None:
+        return found
+    files = SD15_NON_EMA_FILES if variant == "non_ema" else SD15_EMA_FILES
+    what = ("the NON-EMA UNet weights the official code uses (v1-5-pruned.ckpt with use_ema: False)"
+            if variant == "non_ema" else "the EMA UNet weights (diffusers' default files)")
+    lines = [
+        f"Stable Diffusion v1.5 folder {sd_path} has no {variant} UNet: {what} are missing.",
+        "Expected one of:",
+        *[f"    - {Path(sd_path) / f}" for f in files],
+        "On a machine with internet, run:",
+        f'    huggingface-cli download {SD15_ID} "unet/config.json" "{files[0]}"'
+        + ("" if "snapshots" in Path(sd_path).parts else f" --local-dir {sd_path}"),
+        "(or re-run the README's download command, which fetches them).",
+    ]
+    if variant == "non_ema":
+        lines.append("To use the EMA weights instead (not the official setting; features differ), set "
+                     "cfg.sd_unet_variant = 'ema' (config_for(..., sd_unet_variant='ema')).")
+    raise MissingWeightsError("\n".join(lines), model_ids=[SD15_ID],
+                              searched=[str(Path(sd_path) / f) for f in files])
+
+
+def is_single_file(spec: str | os.PathLike) -> bool:
+    """Whether a ``controlnet`` setting names a single checkpoint file (``.pth``, ``.ckpt``,
+    ``.safetensors``, ...) rather than a model id or a diffusers folder."""
+    p = Path(str(spec)).expanduser()
+    return p.is_file() or str(spec).lower().endswith(SINGLE_FILE_SUFFIXES)
+
+
+def resolve_single_file(spec: str | os.PathLike, weights_dir: Path | None = None) -> str:
+    """The path of a single-file checkpoint: ``spec`` as given (absolute, or relative to the
+    working directory), else ``<weights_dir>/<spec>``; a :class:`MissingWeightsError` naming
+    every place tried otherwise."""
+    p = Path(str(spec)).expanduser()
+    tried = [p]
+    if weights_dir is not None and not p.is_absolute():
+        tried.append(weights_dir / p)
+    for cand in tried:
+        if cand.is_file():
+            return str(cand)
+    ft = p.name == CONTROLNET_FT_FILE
+    lines = [f"ControlNet checkpoint file {spec} not found; looked at:",
+             *[f"    - {c}" for c in tried]]
+    if ft:
+        lines.append(
+            f"{CONTROLNET_FT_FILE} is the official FreeReg repository's fine-tuned depth ControlNet "
+            "(the paper's FreeReg-Ft rows): download it from the link in that repository's README "
+            "(WHU-USI3DV/FreeReg, 'ckpt-ft', a Google Drive file) and give its path.")
+    lines.append(f"Table 1 (training-free) uses {CONTROLNET_DEPTH_ID}: the default cfg.controlnet.")
+    raise MissingWeightsError("\n".join(lines), model_ids=[str(spec)], searched=[str(c) for c in tried])

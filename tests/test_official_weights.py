@@ -1,0 +1,212 @@
+"""The real backend loads what the official code loads (issue 12, items 1-3 and 11): the exact
+conditional text, the NON-EMA SD v1.5 UNet, float32 everywhere (CUDA too), the ControlNet
+v1.1 depth by default and the fine-tuned single-file checkpoint when given; and the weight
+check command runs on the demo layout. Model loading is faked: these tests need no weights."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from freereg_lib import cameras, projection, synthetic  # noqa: E402
+from freereg_lib.backends import MissingWeightsError, get_backend  # noqa: E402
+from freereg_lib.backends import weights as W  # noqa: E402
+from freereg_lib.backends.diffusion import DiffusionFeatures  # noqa: E402
+from freereg_lib.config import FreeRegConfig, config_for  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+UNET_NON_EMA = "unet/diffusion_pytorch_model.non_ema.safetensors"
+
+
+# ---------------------------------------------------------------------------------------
+# Item 1: the text.
+
+def _cond_text(cfg) -> str:
+    return DiffusionFeatures(None, None, None, None, None, cfg, "cpu", torch.float32, (64, 64)).cond_text
+
+
+def test_conditional_text_is_the_official_prompt_plus_best_quality_once():
+    assert _cond_text(FreeRegConfig()) == "a photo of a room, furniture, household items, best quality"
+    for name in ("3dmatch", "scannet", "synthetic_indoor"):
+        assert _cond_text(config_for(name)) == "a photo of a room, furniture, household items, best quality"
+    assert _cond_text(config_for("kitti")) == (
+        "a vehicle camera photo of street view, trees, cars, people, house, road, sky, best quality")
+    assert _cond_text(FreeRegConfig()).count("best quality") == 1
+
+
+# ---------------------------------------------------------------------------------------
+# Items 2, 3, 11: what the loaders receive (fake diffusers / transformers loaders).
+
+@pytest.fixture()
+def weights(tmp_path, monkeypatch):
+    """A weights folder with the files the resolver looks for (no real weights) and an empty
+    Hugging Face cache."""
+    import huggingface_hub.constants as C
+
+    monkeypatch.setattr(C, "HF_HUB_CACHE", str(tmp_path / "hf_cache"))
+    monkeypatch.delenv("FREEREG_WEIGHTS", raising=False)
+    w = tmp_path / "weights"
+    sd = w / "stable-diffusion-v1-5"
+    (sd / "unet").mkdir(parents=True)
+    (sd / "model_index.json").write_text("{}")
+    (sd / "unet" / "config.json").write_text("{}")
+    (sd / UNET_NON_EMA).write_bytes(b"non-ema")
+    (w / "control_v11f1p_sd15_depth").mkdir()
+    (w / "control_v11f1p_sd15_depth" / "config.json").write_text("{}")
+    return w
+
+
+@pytest.fixture()
+def fake_loaders(monkeypatch):
+    """Record every ``from_pretrained`` / ``from_single_file`` call instead of loading."""
+    import diffusers
+    import transformers
+
+    calls: list[tuple[str, str, tuple, dict]] = []
+
+    def recorder(kind, method):
+        def load(*args, **kw):
+            calls.append((kind, method, args, kw))
+            return torch.nn.Module()
+        return load
+
+    for cls in ("UNet2DConditionModel", "AutoencoderKL", "ControlNetModel"):
+        monkeypatch.setattr(getattr(diffusers, cls), "from_pretrained", recorder(cls, "from_pretrained"))
+    monkeypatch.setattr(diffusers.ControlNetModel, "from_single_file", recorder("ControlNetModel", "from_single_file"))
+    for cls in ("CLIPTextModel", "CLIPTokenizer"):
+        monkeypatch.setattr(getattr(transformers, cls), "from_pretrained", recorder(cls, "from_pretrained"))
+    return calls
+
+
+def _only(calls, kind):
+    found = [c for c in calls if c[0] == kind]
+    assert len(found) == 1, found
+    return found[0]
+
+
+def test_real_backend_loads_the_non_ema_unet_in_float32(weights, fake_loaders):
+    be = get_backend("real", FreeRegConfig(), device="cpu", weights_dir=weights, load=("diffusion",))
+    be.diffusion  # noqa: B018 - loads
+    _, _, args, kw = _only(fake_loaders, "UNet2DConditionModel")
+    assert kw["variant"] == "non_ema" and kw["subfolder"] == "unet" and kw["local_files_only"] is True
+    assert args[0] == str(weights / "stable-diffusion-v1-5")
+    for kind in ("UNet2DConditionModel", "AutoencoderKL", "CLIPTextModel", "ControlNetModel"):
+        assert _only(fake_loaders, kind)[3]["torch_dtype"] == torch.float32
+    # Table 1's ControlNet v1.1 depth, from its diffusers folder.
+    _, method, args, _ = _only(fake_loaders, "ControlNetModel")
+    assert method == "from_pretrained" and args[0] == str(weights / "control_v11f1p_sd15_depth")
+    assert "non-EMA" in be.label and "ControlNet v1.1 depth" in be.label and "float32" in be.label
+
+
+def test_float32_is_the_default_on_cuda_too(weights, fake_loaders, monkeypatch):
+    """CUDA simulated: the device is CUDA, the dtype float32 (float16 was the old default)."""
+    from freereg_lib.backends.torch_backends import resolve_device
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    dev, dt = resolve_device(None)
+    assert dev.type == "cuda" and dt == torch.float32
+    be = get_backend("real", FreeRegConfig(), weights_dir=weights, load=("diffusion",))
+    assert be.device.type == "cuda" and be.dtype == torch.float32
+    be.diffusion  # noqa: B018
+    assert {c[3]["torch_dtype"] for c in fake_loaders if "torch_dtype" in c[3]} == {torch.float32}
+    # float16 / bfloat16 only when asked for, through the config (or get_backend's dtype=).
+    fake_loaders.clear()
+    be = get_backend("real", FreeRegConfig(dtype="float16"), weights_dir=weights, load=("diffusion",))
+    be.diffusion  # noqa: B018
+    assert {c[3]["torch_dtype"] for c in fake_loaders if "torch_dtype" in c[3]} == {torch.float16}
+    assert get_backend("real", FreeRegConfig(dtype="float16"), weights_dir=weights, load=("diffusion",),
+                       dtype="bfloat16").dtype == torch.bfloat16
+
+
+def test_dtype_field_on_the_tiny_backend():
+    assert get_backend("tiny", FreeRegConfig(), device="cpu").dtype == torch.float32
+    assert get_backend("tiny", FreeRegConfig(dtype="bfloat16"), device="cpu").dtype == torch.bfloat16
+    with pytest.raises(ValueError, match="unsupported dtype 'float64'"):
+        get_backend("tiny", FreeRegConfig(dtype="float64"), device="cpu")
+
+
+def test_missing_non_ema_files_stop_with_the_files_to_download(weights, fake_loaders):
+    (weights / "stable-diffusion-v1-5" / UNET_NON_EMA).unlink()
+    (weights / "stable-diffusion-v1-5" / "unet" / "diffusion_pytorch_model.safetensors").write_bytes(b"ema")
+    with pytest.raises(MissingWeightsError) as err:
+        get_backend("real", FreeRegConfig(), device="cpu", weights_dir=weights, load=("diffusion",))
+    msg = str(err.value)
+    assert "no non_ema UNet" in msg and "NON-EMA" in msg
+    assert "unet/diffusion_pytorch_model.non_ema.safetensors" in msg
+    assert "unet/diffusion_pytorch_model.non_ema.bin" in msg
+    assert (f'huggingface-cli download stable-diffusion-v1-5/stable-diffusion-v1-5 "unet/config.json" '
+            f'"{UNET_NON_EMA}" --local-dir {weights / "stable-diffusion-v1-5"}') in msg
+    assert "sd_unet_variant = 'ema'" in msg
+    assert not fake_loaders  # stopped before loading anything
+    # The explicit opt-in to the EMA weights: diffusers' default files (variant None).
+    be = get_backend("real", FreeRegConfig(sd_unet_variant="ema"), device="cpu", weights_dir=weights,
+                     load=("diffusion",))
+    be.diffusion  # noqa: B018
+    assert _only(fake_loaders, "UNet2DConditionModel")[3]["variant"] is None
+    assert "EMA UNet" in be.label and "non-EMA" not in be.label
+    with pytest.raises(ValueError, match="sd_unet_variant must be one of"):
+        get_backend("real", FreeRegConfig(sd_unet_variant="fp16"), device="cpu", weights_dir=weights,
+                    load=("diffusion",))
+
+
+def test_readme_download_command_fetches_the_non_ema_unet():
+    cmd = W.download_command(W.SD15_ID, Path("weights"))
+    assert f'"{UNET_NON_EMA}"' in cmd and '"unet/config.json"' in cmd and '"unet/*"' not in cmd
+    readme = (ROOT / "README.md").read_text()
+    weights_section = readme.split("### Weights", 1)[1].split("\n### ", 1)[0]
+    assert f'"{UNET_NON_EMA}"' in weights_section and '"unet/*"' not in weights_section
+
+
+def test_fine_tuned_controlnet_single_file(weights, fake_loaders, tmp_path):
+    """FreeReg-Ft: the official fine-tuned checkpoint (original single-file format) goes to
+    ``ControlNetModel.from_single_file`` with the v1.1 depth folder as its architecture."""
+    ft = tmp_path / "freereg" / W.CONTROLNET_FT_FILE
+    ft.parent.mkdir()
+    ft.write_bytes(b"ldm controlnet")
+    be = get_backend("real", FreeRegConfig(controlnet=str(ft)), device="cpu", weights_dir=weights,
+                     load=("diffusion",))
+    be.diffusion  # noqa: B018
+    _, method, args, kw = _only(fake_loaders, "ControlNetModel")
+    assert method == "from_single_file" and args[0] == str(ft)
+    assert kw["config"] == str(weights / "control_v11f1p_sd15_depth") and kw["torch_dtype"] == torch.float32
+    assert kw["local_files_only"] is True
+    assert W.CONTROLNET_FT_FILE in be.label
+    # A path relative to weights_dir works too; a missing file says where to get it.
+    (weights / W.CONTROLNET_FT_FILE).write_bytes(b"x")
+    be = get_backend("real", FreeRegConfig(controlnet=W.CONTROLNET_FT_FILE), device="cpu",
+                     weights_dir=weights, load=("diffusion",))
+    assert be.paths["controlnet_file"] == str(weights / W.CONTROLNET_FT_FILE)
+    with pytest.raises(MissingWeightsError, match="official FreeReg repository's fine-tuned depth ControlNet"):
+        get_backend("real", FreeRegConfig(controlnet=str(tmp_path / "nope" / W.CONTROLNET_FT_FILE)),
+                    device="cpu", weights_dir=weights, load=("diffusion",))
+
+
+def test_from_single_file_takes_a_local_config_folder():
+    """The installed diffusers reads an original-format ControlNet with a local ``config``."""
+    import inspect
+
+    from diffusers import ControlNetModel
+
+    assert hasattr(ControlNetModel, "from_single_file")
+    doc = inspect.getdoc(ControlNetModel.from_single_file) or ""
+    assert "config" in doc and "local_files_only" in doc
+
+
+def test_model_choices_key_the_feature_cache():
+    from freereg_lib.cache import feature_params
+
+    base = feature_params(FreeRegConfig())
+    for change in (dict(controlnet="x/control_v11f1p_sd15_depth_ft.pth"), dict(sd_unet_variant="ema"),
+                   dict(dtype="float16")):
+        assert feature_params(FreeRegConfig(**change)) != base
+
+
+def test_table1_grid_offers_the_freereg_ft_job():
+    grid = (ROOT / "freereg_lib" / "data" / "grids" / "table1.yaml").read_text()
+    assert "control_v11f1p_sd15_depth_ft.pth" in grid and "FreeReg-Ft" in grid
