@@ -4,16 +4,12 @@ v1.1 depth by default and the fine-tuned single-file checkpoint when given; and 
 check command runs on the demo layout. Model loading is faked: these tests need no weights."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
-import cv2
-import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")
 
-from freereg_lib import cameras, projection, synthetic  # noqa: E402
 from freereg_lib.backends import MissingWeightsError, get_backend  # noqa: E402
 from freereg_lib.backends import weights as W  # noqa: E402
 from freereg_lib.backends.diffusion import DiffusionFeatures  # noqa: E402
@@ -210,3 +206,57 @@ def test_model_choices_key_the_feature_cache():
 def test_table1_grid_offers_the_freereg_ft_job():
     grid = (ROOT / "freereg_lib" / "data" / "grids" / "table1.yaml").read_text()
     assert "control_v11f1p_sd15_depth_ft.pth" in grid and "FreeReg-Ft" in grid
+
+
+# ---------------------------------------------------------------------------------------
+# The weight check command, on the demo layout the loader tests write (tiny backend: it must
+# run and print, not register).
+
+def test_check_weights_runs_the_demo_with_the_tiny_backend(tmp_path, capsys):
+    from freereg_lib.check_weights import main
+
+    from test_loaders import make_demo
+
+    demo, *_ = make_demo(tmp_path / "demo", rgb_size=(120, 160), dpt_size=(60, 80))
+    rc = main(["--demo", str(demo), "--backend", "tiny", "--device", "cpu", "--ransac-iters", "200",
+               "--ddim-steps", "2"])
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    assert "backend: tiny backend" in out and "dtype: float32" in out
+    assert "random init (seed 0)" in out and "FPFH (Open3D): no weights" in out
+    assert f"demo pair: {demo}" in out and "RANSAC iterations 200, DDIM steps 2" in out
+    header = next(ln for ln in out.splitlines() if ln.startswith("method"))
+    for field in ("IR", "IN", "RE (deg)", "TE (m)", "registered at (20 deg, 0.5 m)"):
+        assert field in header
+    rows = [ln.split() for ln in out.splitlines() if ln.startswith("FreeReg ")]
+    assert [r[1] for r in rows] == ["kabsch", "pnp"]
+    for r in rows:
+        assert int(r[2]) > 0  # features were extracted and matched (the chain ran)
+        float(r[3]), float(r[5]), float(r[6])  # IR, RE, TE print as numbers (nan when failed)
+        assert r[7] in ("yes", "no")
+    assert "numbers mean nothing" in out
+
+
+def test_check_weights_prints_hashes_of_real_files(weights, fake_loaders, monkeypatch, tmp_path, capsys):
+    """The real backend's report: every model's id, folder, variant, dtype and file SHA-256
+    (the loaders are faked; the demo then fails to load and the command says so)."""
+    import hashlib
+
+    from freereg_lib import check_weights
+
+    (weights / "stable-diffusion-v1-5" / "vae").mkdir()
+    (weights / "stable-diffusion-v1-5" / "vae" / "diffusion_pytorch_model.safetensors").write_bytes(b"vae")
+    (weights / "zoedepth-nyu").mkdir()
+    (weights / "zoedepth-nyu" / "config.json").write_text("{}")
+    (weights / "zoedepth-nyu" / "model.safetensors").write_bytes(b"zoe")
+    monkeypatch.setattr("freereg_lib.backends.zoedepth.load_real_zoedepth", lambda path, device: object())
+    rc = check_weights.main(["--demo", str(tmp_path / "no_demo"), "--weights-dir", str(weights), "--device", "cpu"])
+    out = capsys.readouterr()
+    assert rc == 1 and "FAILED to load the demo pair" in out.err
+    text = out.out
+    assert "Stable Diffusion v1.5 UNet: stable-diffusion-v1-5/stable-diffusion-v1-5 at" in text
+    assert "variant non_ema; dtype float32" in text
+    assert f"{weights / 'stable-diffusion-v1-5' / UNET_NON_EMA}  sha256 {hashlib.sha256(b'non-ema').hexdigest()}" in text
+    assert hashlib.sha256(b"vae").hexdigest() in text and hashlib.sha256(b"zoe").hexdigest() in text
+    assert "depth ControlNet: lllyasviel/control_v11f1p_sd15_depth at" in text
+    assert "ZoeDepth: Intel/zoedepth-nyu at" in text
