@@ -194,6 +194,86 @@ def test_from_single_file_takes_a_local_config_folder():
     assert "config" in doc and "local_files_only" in doc
 
 
+def _to_ldm_controlnet(state: dict, layers_per_block: int = 2) -> dict:
+    """A diffusers ControlNet state dict in the original ControlNet (ldm) layout, the format of
+    ``control_v11f1p_sd15_depth_ft.pth``: ``control_model.input_blocks``, ``zero_convs``,
+    ``middle_block``, ``middle_block_out``, ``input_hint_block``, ``time_embed``."""
+    import re
+
+    res = [("norm1", "in_layers.0"), ("conv1", "in_layers.2"), ("norm2", "out_layers.0"),
+           ("conv2", "out_layers.3"), ("time_emb_proj", "emb_layers.1"), ("conv_shortcut", "skip_connection")]
+    fixed = {"time_embedding.linear_1": "time_embed.0", "time_embedding.linear_2": "time_embed.2",
+             "conv_in": "input_blocks.0.0", "controlnet_cond_embedding.conv_in": "input_hint_block.0",
+             "controlnet_cond_embedding.conv_out": "input_hint_block.14", "controlnet_mid_block": "middle_block_out.0"}
+    out = {}
+    for k, v in state.items():
+        head, _, leaf = k.rpartition(".")
+        if head in fixed:
+            new = f"{fixed[head]}.{leaf}"
+        elif m := re.match(r"down_blocks\.(\d+)\.resnets\.(\d+)\.(.*)", k):
+            b, j, rest = int(m[1]), int(m[2]), m[3]
+            for a, z in res:
+                rest = rest.replace(a, z) if rest.startswith(a + ".") else rest
+            new = f"input_blocks.{b * (layers_per_block + 1) + j + 1}.0.{rest}"
+        elif m := re.match(r"down_blocks\.(\d+)\.attentions\.(\d+)\.(.*)", k):
+            new = f"input_blocks.{int(m[1]) * (layers_per_block + 1) + int(m[2]) + 1}.1.{m[3]}"
+        elif m := re.match(r"down_blocks\.(\d+)\.downsamplers\.0\.conv\.(.*)", k):
+            new = f"input_blocks.{int(m[1]) * (layers_per_block + 1) + layers_per_block + 1}.0.op.{m[2]}"
+        elif m := re.match(r"controlnet_down_blocks\.(\d+)\.(.*)", k):
+            new = f"zero_convs.{m[1]}.0.{m[2]}"
+        elif m := re.match(r"mid_block\.resnets\.(\d+)\.(.*)", k):
+            rest = m[2]
+            for a, z in res:
+                rest = rest.replace(a, z) if rest.startswith(a + ".") else rest
+            new = f"middle_block.{2 * int(m[1])}.{rest}"
+        elif m := re.match(r"mid_block\.attentions\.0\.(.*)", k):
+            new = f"middle_block.1.{m[1]}"
+        elif m := re.match(r"controlnet_cond_embedding\.blocks\.(\d+)\.(.*)", k):
+            new = f"input_hint_block.{2 * (int(m[1]) + 1)}.{m[2]}"
+        else:
+            raise KeyError(k)
+        out["control_model." + new] = v.clone()
+    return out
+
+
+def test_fine_tuned_controlnet_file_loads_bit_for_bit(tmp_path):
+    """The real loader (no fakes) reads an original-format ControlNet file, offline, with the
+    architecture of a local diffusers folder: every weight equal to the model it came from."""
+    from diffusers import ControlNetModel
+
+    from freereg_lib.backends.diffusion import TINY_CONTROLNET_EXTRA, TINY_UNET_CONFIG, load_real_diffusion
+
+    torch.manual_seed(0)
+    cn_cfg = {k: v for k, v in TINY_UNET_CONFIG.items() if k not in ("out_channels", "up_block_types", "sample_size")}
+    ref = ControlNetModel(**cn_cfg, **TINY_CONTROLNET_EXTRA)
+    folder = tmp_path / "control_v11f1p_sd15_depth"
+    ref.save_pretrained(folder)
+    ft = tmp_path / W.CONTROLNET_FT_FILE
+    # As a training run saves it: a state_dict holding the ControlNet (and, here, a UNet key).
+    ldm = _to_ldm_controlnet(ref.state_dict())
+    ldm["model.diffusion_model.out.2.bias"] = torch.zeros(4)
+    torch.save({"state_dict": ldm}, ft)
+    import diffusers
+    import transformers
+
+    # Only the ControlNet is real here; SD's parts are not needed to check the file.
+    stub = staticmethod(lambda *a, **k: torch.nn.Module())
+    with pytest.MonkeyPatch.context() as mp:
+        for cls in (diffusers.UNet2DConditionModel, diffusers.AutoencoderKL, transformers.CLIPTextModel,
+                    transformers.CLIPTokenizer):
+            mp.setattr(cls, "from_pretrained", stub)
+        diff = load_real_diffusion("unused", str(ft), FreeRegConfig(), torch.device("cpu"), torch.float32,
+                                   (64, 64), controlnet_config=str(folder))
+        got = diff.controlnet.state_dict()
+        assert set(got) == set(ref.state_dict())
+        assert all(torch.equal(got[k], v) for k, v in ref.state_dict().items())
+        # A file of another model is refused with the path in the message.
+        torch.save({"state_dict": {"control_model.time_embed.0.weight": torch.zeros(1)}}, tmp_path / "bad.pth")
+        with pytest.raises(ValueError, match="bad.pth"):
+            load_real_diffusion("unused", str(tmp_path / "bad.pth"), FreeRegConfig(), torch.device("cpu"),
+                                torch.float32, (64, 64), controlnet_config=str(folder))
+
+
 def test_model_choices_key_the_feature_cache():
     from freereg_lib.cache import feature_params
 

@@ -476,8 +476,17 @@ def load_real_diffusion(sd_path: str, controlnet_path: str, cfg, device, dtype,
         if controlnet_config is None:
             raise ValueError(f"{controlnet_path} is a single-file ControlNet checkpoint: give "
                              "controlnet_config, the diffusers folder whose config.json describes it")
-        controlnet = ControlNetModel.from_single_file(str(controlnet_path), config=str(controlnet_config),
-                                                      torch_dtype=dtype, **kw)
+        try:
+            controlnet = ControlNetModel.from_single_file(str(controlnet_path), config=str(controlnet_config),
+                                                          torch_dtype=dtype, **kw)
+        except (TypeError, KeyError, RuntimeError, ValueError) as e:  # a file of another model
+            raise ValueError(f"{controlnet_path} could not be read as a depth ControlNet with the architecture "
+                             f"of {controlnet_config}: {type(e).__name__}: {e}") from e
+        # diffusers skips ControlNet weights the file lacks, leaving them uninitialised (meta).
+        missing = [n for n, t in controlnet.state_dict().items() if t.is_meta]
+        if missing:
+            raise ValueError(f"{controlnet_path} lacks {len(missing)} ControlNet weights of the architecture in "
+                             f"{controlnet_config} (e.g. {missing[:3]}): not a depth ControlNet for SD v1.5?")
     else:
         controlnet = ControlNetModel.from_pretrained(controlnet_path, torch_dtype=dtype, **kw)
     mods = [m.to(device).eval() for m in (unet, controlnet, vae, text)]
