@@ -151,6 +151,35 @@ def test_missing_non_ema_files_stop_with_the_files_to_download(weights, fake_loa
                     load=("diffusion",))
 
 
+def test_non_ema_variant_reads_the_non_ema_file_for_real(tmp_path):
+    """With diffusers itself (no fake): a folder holding both UNets, the EMA one in the default
+    files and another in ``*.non_ema.safetensors``; the default setting loads the latter."""
+    import diffusers
+    import transformers
+    from diffusers import UNet2DConditionModel
+
+    from freereg_lib.backends.diffusion import TINY_UNET_CONFIG, load_real_diffusion
+
+    sd = tmp_path / "stable-diffusion-v1-5"
+    torch.manual_seed(0)
+    ema = UNet2DConditionModel(**TINY_UNET_CONFIG)
+    non_ema = UNet2DConditionModel(**TINY_UNET_CONFIG)
+    ema.save_pretrained(sd / "unet")
+    non_ema.save_pretrained(sd / "unet", variant="non_ema")
+    assert (sd / UNET_NON_EMA).is_file() and (sd / "unet" / "diffusion_pytorch_model.safetensors").is_file()
+    stub = staticmethod(lambda *a, **k: torch.nn.Module())
+    with pytest.MonkeyPatch.context() as mp:
+        for cls in (diffusers.AutoencoderKL, diffusers.ControlNetModel, transformers.CLIPTextModel,
+                    transformers.CLIPTokenizer):
+            mp.setattr(cls, "from_pretrained", stub)
+        for variant, want in (("non_ema", non_ema), ("ema", ema)):
+            diff = load_real_diffusion(str(sd), str(tmp_path), FreeRegConfig(), torch.device("cpu"), torch.float32,
+                                       (64, 64), unet_variant=variant)
+            got = diff.unet.state_dict()
+            assert all(torch.equal(got[k], v) for k, v in want.state_dict().items()), variant
+            assert next(diff.unet.parameters()).dtype == torch.float32
+
+
 def test_readme_download_command_fetches_the_non_ema_unet():
     cmd = W.download_command(W.SD15_ID, Path("weights"))
     assert f'"{UNET_NON_EMA}"' in cmd and '"unet/config.json"' in cmd and '"unet/*"' not in cmd
