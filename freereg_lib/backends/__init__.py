@@ -41,7 +41,8 @@ def get_backend(name: str, cfg=None, device: str | None = None, **kw) -> Backend
             ignores it.
         **kw: passed to the backend class (:class:`StubBackend`, ``TinyBackend``,
             ``RealBackend``), e.g. ``noise=`` (stub), ``resize_hw=`` (tiny),
-            ``weights_dir=`` (real).
+            ``weights_dir=`` (real), ``dtype=`` (tiny, real: overrides ``cfg.dtype``, whose
+            default is the official float32 on every device).
 
     The real backend raises :class:`MissingWeightsError` at once when its weights are not
     on this machine.
