@@ -1,9 +1,11 @@
 """Depth densification in the style of IP-Basic (Ku et al., CRV 2018), with OpenCV morphology.
 
 The algorithm works on inverted depth so that closing and dilation favour near surfaces:
-valid depth d becomes ``max_depth - d``, empty pixels stay 0, and the result is inverted
-back. ``fill_in_fast`` is what FreeReg uses indoors, ``fill_in_multiscale`` on KITTI.
-Unlike the official copy, remaining holes stay 0 (no measurement) instead of 255 m.
+valid depth d (> 0.1 m) becomes ``max_depth - d``, empty pixels stay 0, and the result is
+inverted back. The official code densifies ScanNet (and its demo) with ``fill_in_fast``
+(its copy: DIAMOND_KERNEL_7, max_depth 15 m), KITTI with ``fill_in_multiscale`` (IP-Basic's
+steps and kernels as they are), and 3DMatch not at all. Unlike the official copy, holes
+``fill_in_multiscale`` leaves stay 0 (no measurement) instead of 255 m.
 
 Masked updates use ``np.where`` / ``np.copyto(where=)`` rather than boolean fancy indexing
 (the same float32 arithmetic, so bitwise the same maps, 1.5-2x faster).
@@ -16,6 +18,7 @@ import numpy as np
 FULL_KERNEL_3 = np.ones((3, 3), np.uint8)
 FULL_KERNEL_5 = np.ones((5, 5), np.uint8)
 FULL_KERNEL_7 = np.ones((7, 7), np.uint8)
+FULL_KERNEL_9 = np.ones((9, 9), np.uint8)
 FULL_KERNEL_31 = np.ones((31, 31), np.uint8)
 CROSS_KERNEL_3 = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], np.uint8)
 CROSS_KERNEL_5 = np.array(
@@ -33,13 +36,13 @@ DIAMOND_KERNEL_7 = (np.abs(np.arange(7)[:, None] - 3) + np.abs(np.arange(7)[None
 
 
 def _invert(depth: np.ndarray, max_depth: float) -> np.ndarray:
-    """``max_depth - depth`` where ``depth > 0``, else 0 (``depth`` float32)."""
-    return np.where(depth > 0, max_depth - depth, 0.0).astype(np.float32, copy=False)
+    """``max_depth - depth`` where ``depth > 0.1`` (IP-Basic's validity test), else as it is."""
+    return np.where(depth > 0.1, max_depth - depth, depth).astype(np.float32, copy=False)
 
 
 def _uninvert(d: np.ndarray, max_depth: float) -> np.ndarray:
-    """Back to metres as float64: ``max_depth - d`` where ``d > 0.1``, else 0."""
-    return np.where(d > 0.1, max_depth - d, 0.0).astype(np.float64)
+    """Back to metres as float64: ``max_depth - d`` where ``d > 0.1``, else as it is (IP-Basic)."""
+    return np.where(d > 0.1, max_depth - d, d).astype(np.float64)
 
 
 def _fill(d: np.ndarray, kernel: np.ndarray, where: np.ndarray | None = None) -> None:
@@ -59,7 +62,7 @@ def _check(depth: np.ndarray) -> np.ndarray:
 
 def fill_in_fast(
     depth: np.ndarray,
-    max_depth: float = 100.0,
+    max_depth: float = 15.0,
     custom_kernel: np.ndarray = DIAMOND_KERNEL_7,
     extrapolate: bool = False,
     blur_type: str = "bilateral",
@@ -100,12 +103,14 @@ def fill_in_multiscale(
     extrapolate: bool = False,
     blur_type: str = "bilateral",
 ) -> np.ndarray:
-    """IP-Basic's multi-scale densification (default settings); returns ``(H, W) float64``.
+    """IP-Basic's multi-scale densification, step by step; returns ``(H, W) float64``.
 
-    Near (< 15 m), medium (15-30 m) and far (> 30 m) points are dilated with their own
-    kernels so near surfaces win, then holes are closed and filled at growing scales,
-    the empty sky region above the top measurement is left empty, and the map is blurred
-    where it was not measured.
+    Near (<= 15 m), medium (15-30 m) and far (> 30 m) points are dilated with their own
+    kernels so near surfaces win; small holes are closed and median-filtered; holes below
+    each column's top measurement are filled with a 9 x 9 dilation, then six masked 5 x 5
+    dilations; a median and a bilateral blur act on the filled pixels below the top
+    measurement. The region above the top measurement (sky) stays empty unless
+    ``extrapolate``. Only IP-Basic's 255 m for the remaining holes is not copied: they stay 0.
     """
     d0 = _check(depth)
     valid = d0 > 0.1
@@ -114,7 +119,7 @@ def fill_in_multiscale(
     zero = np.float32(0.0)
     near = valid & (d0 <= 15.0)
     med = valid & (d0 > 15.0) & (d0 <= 30.0)
-    far = valid & (d0 > 30.0)
+    far = d0 > 30.0
     dilated_far = cv2.dilate(np.where(far, d, zero), dilation_kernel_far)
     dilated_med = cv2.dilate(np.where(med, d, zero), dilation_kernel_med)
     dilated_near = cv2.dilate(np.where(near, d, zero), dilation_kernel_near)
@@ -125,38 +130,41 @@ def fill_in_multiscale(
     d = cv2.morphologyEx(d, cv2.MORPH_CLOSE, FULL_KERNEL_5)
     np.copyto(d, cv2.medianBlur(d, 5), where=d > 0.1)
 
-    # Pixels above the top measurement of each column are sky: keep them empty.
-    top_mask = None
+    # Below each column's top measurement; a column without one counts as all below (IP-Basic's argmax).
+    _fill(d, FULL_KERNEL_9, _below_top(d))
     if extrapolate:
         _extend_top(d)
+        top_mask = np.ones(d.shape, bool)
     else:
-        top_rows = np.argmax(d > 0.1, axis=0)
-        has_any = (d > 0.1).any(axis=0)
-        rows = np.arange(d.shape[0])[:, None]
-        top_mask = (rows >= top_rows[None, :]) & has_any[None, :]
-
-    _fill(d, FULL_KERNEL_7, top_mask)
+        top_mask = _below_top(d)
     for _ in range(6):
         _fill(d, FULL_KERNEL_5, top_mask)
-    _fill(d, FULL_KERNEL_31, top_mask)
-    if extrapolate:
-        _fill(d, FULL_KERNEL_31)
 
-    measured = d0 > 0.1
+    blur_where = (d > 0.1) & top_mask
+    np.copyto(d, cv2.medianBlur(d, 5), where=blur_where)
     if blur_type == "gaussian":
-        blurred = cv2.GaussianBlur(d, (5, 5), 0)
-    else:
-        blurred = cv2.bilateralFilter(d, 5, 0.5, 2.0)
-    np.copyto(d, blurred, where=(d > 0.1) & ~measured)
+        np.copyto(d, cv2.GaussianBlur(d, (5, 5), 0), where=(d > 0.1) & top_mask)
+    elif blur_type == "bilateral":
+        np.copyto(d, cv2.bilateralFilter(d, 5, 0.5, 2.0), where=blur_where)
     return _uninvert(d, max_depth)
 
 
-def densify(depth: np.ndarray, method: str = "fast", max_depth: float = 100.0) -> np.ndarray:
-    """Dispatch on ``method``: ``"fast"``, ``"multiscale"`` or ``"none"`` (a float64 copy)."""
+def _below_top(d: np.ndarray) -> np.ndarray:
+    """``(H, W) bool``: rows at or below each column's first pixel > 0.1 (all rows when none)."""
+    top_rows = np.argmax(d > 0.1, axis=0)
+    return np.arange(d.shape[0])[:, None] >= top_rows[None, :]
+
+
+def densify(depth: np.ndarray, method: str = "fast", max_depth: float | None = None) -> np.ndarray:
+    """Dispatch on ``method``: ``"fast"``, ``"multiscale"`` or ``"none"`` (a float64 copy).
+
+    ``max_depth`` (the inversion offset) defaults to what the official code uses: 15 m for
+    ``fill_in_fast`` (its copy's default) and IP-Basic's 100 m for ``fill_in_multiscale``.
+    """
     if method == "fast":
-        return fill_in_fast(depth, max_depth=max_depth)
+        return fill_in_fast(depth, max_depth=15.0 if max_depth is None else max_depth)
     if method == "multiscale":
-        return fill_in_multiscale(depth, max_depth=max_depth)
+        return fill_in_multiscale(depth, max_depth=100.0 if max_depth is None else max_depth)
     if method == "none":
         return np.asarray(depth, dtype=np.float64).copy()
     raise ValueError(f"unknown densify method {method!r}; expected 'fast', 'multiscale' or 'none'")

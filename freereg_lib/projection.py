@@ -51,19 +51,26 @@ def project_to_depth(
     return depth.reshape(H, W), index.reshape(H, W)
 
 
-def edge_filter(depth: np.ndarray, max_range: float) -> np.ndarray:
-    """Zero pixels whose 3 x 3 neighbourhood spans more than ``max_range`` metres of depth.
+def edge_filter(depth: np.ndarray, max_range: float, half_window: int = 3) -> np.ndarray:
+    """The official edge filter: pixels near a depth discontinuity are zeroed.
 
-    Projected clouds leak background points through foreground edges; the official code
-    removes them this way. Empty neighbours are ignored. Returns a filtered copy.
+    Pixel ``(i, j)`` of ``depth (H, W)`` in metres is kept when ``i >= half_window``,
+    ``j >= half_window`` and the depth range over rows ``[i - w, i + w)`` and columns
+    ``[j - w, j + w)`` (``w = half_window``; a 6 x 6 window, not centred) is below
+    ``max_range``, exactly as the official ``proj_depth(filter_edge=True)`` loop; holes (0)
+    count as depth 0 there. FreeReg applies it to the monocular depth map before its
+    back-projection for geometric features (0.2 m indoors, 1.0 m on KITTI), where
+    ZoeDepth smears depth across object boundaries. Returns a filtered float64 copy.
     """
-    import cv2
+    from scipy import ndimage
 
-    d = np.asarray(depth, dtype=np.float32)
-    valid = d > 0
-    kernel = np.ones((3, 3), np.uint8)
-    # Window max and min over valid pixels (empty ones are 0 for the max, inf for the min).
-    dmax = cv2.dilate(np.where(valid, d, np.float32(0.0)), kernel)
-    dmin = cv2.erode(np.where(valid, d, np.float32(np.inf)), kernel)
-    drop = valid & ((dmax - dmin) > max_range)
-    return np.where(drop, 0.0, np.asarray(depth, dtype=np.float64))
+    d = np.asarray(depth, dtype=np.float64)
+    size = 2 * int(half_window)
+    # An even window of ``size`` covers offsets -w .. w-1; 'nearest' padding repeats a
+    # pixel that is already inside the window, so clipped borders read as the loop's slices.
+    dmax = ndimage.maximum_filter(d, size=size, mode="nearest")
+    dmin = ndimage.minimum_filter(d, size=size, mode="nearest")
+    keep = (dmax - dmin) < max_range
+    keep[:half_window, :] = False
+    keep[:, :half_window] = False
+    return np.where(keep, d, 0.0)

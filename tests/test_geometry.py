@@ -70,14 +70,6 @@ def test_depth_range_drops_points():
     assert not depth.any()
 
 
-def test_edge_filter_removes_mixed_pixels():
-    depth = np.full((9, 9), 2.0)
-    depth[:, 5:] = 5.0
-    out = projection.edge_filter(depth, 0.2)
-    assert np.all(out[:, :4] == 2.0) and np.all(out[:, 6:] == 5.0)
-    assert np.all(out[:, 4:6] == 0.0)
-
-
 def _plane_depth(h=120, w=160):
     K = cameras.intrinsics(120.0, 120.0, w / 2 - 0.5, h / 2 - 0.5)
     # A tilted plane z = 2 + 0.2 x seen by the camera: depth is a smooth function of pixels.
