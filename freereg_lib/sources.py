@@ -11,7 +11,7 @@ from .pair import Pair, load_or_record
 
 SYNTHETIC = ("synthetic_indoor", "synthetic_outdoor")
 EMBEDDED = ("icl",)
-ON_DISK = ("3dmatch", "scannet", "kitti", "demo")
+ON_DISK = ("3dmatch", "scannet", "kitti", "kitti_dc", "demo")
 
 
 def iter_pairs(

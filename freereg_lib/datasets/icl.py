@@ -13,7 +13,7 @@ import numpy as np
 
 from .. import cameras
 from ..pair import Pair, load_or_record
-from .common import read_depth, read_redwood_log, read_rgb
+from .common import INDOOR_DEPTH_RANGE, read_depth, read_redwood_log, read_rgb
 
 ICL_ROOT = Path(__file__).resolve().parent.parent / "data" / "icl_livingroom"
 
@@ -27,8 +27,13 @@ class ICLSample:
         if not intr_path.is_file():
             raise FileNotFoundError(f"missing {intr_path}: is {self.root} an ICL sample folder?")
         intr = json.loads(intr_path.read_text())
-        self.K = cameras.intrinsics(intr["fx"], intr["fy"], intr["cx"], intr["cy"])
+        keys = ("fx", "fy", "cx", "cy", "width", "height", "depth_scale")
+        missing = [k for k in keys if k not in intr]
+        if missing:
+            raise ValueError(f"{intr_path}: missing key(s) {missing}; expected {list(keys)}")
         self.size = (int(intr["height"]), int(intr["width"]))
+        self.K = cameras.check_intrinsics(cameras.intrinsics(intr["fx"], intr["fy"], intr["cx"], intr["cy"]),
+                                          self.size, str(intr_path))
         self.depth_scale = float(intr["depth_scale"])
         self.poses = read_redwood_log(self.root / "trajectory.log")
         self.frames = sorted(int(p.stem) for p in (self.root / "color").glob("*.jpg"))
@@ -51,7 +56,7 @@ class ICLSample:
         return read_rgb(self.root / "color" / f"{frame:05d}.jpg")
 
     def depth(self, frame: int) -> np.ndarray:
-        return read_depth(self.root / "depth" / f"{frame:05d}.png", self.depth_scale)
+        return read_depth(self.root / "depth" / f"{frame:05d}.png", self.depth_scale, expected=INDOOR_DEPTH_RANGE)
 
     def pair(self, i: int, j: int) -> Pair:
         """RGB of frame ``i`` against the point cloud of frame ``j``."""

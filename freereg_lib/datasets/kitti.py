@@ -72,6 +72,17 @@ def _entry(calib: dict, key: str, size: int, path: Path) -> np.ndarray:
     return calib[key]
 
 
+def _oxts_row(path: Path) -> np.ndarray:
+    """The first 6 numbers (lat, lon, alt, roll, pitch, yaw) of an OXTS file; errors name the file."""
+    try:
+        row = np.loadtxt(path, ndmin=1)
+    except ValueError as exc:
+        raise ValueError(f"cannot read {path} as an OXTS row of numbers: {exc}") from None
+    if row.ndim != 1 or row.size < 6 or not np.all(np.isfinite(row[:6])):
+        raise ValueError(f"{path}: expected one row of at least 6 finite numbers (lat lon alt roll pitch yaw ...)")
+    return row[:6]
+
+
 def oxts_poses(rows: np.ndarray) -> np.ndarray:
     """``T_world_imu (F, 4, 4)`` of OXTS rows ``(F, >= 6)`` (lat, lon in degrees, alt, roll,
     pitch, yaw in radians), with the Mercator scale of the first row (module docstring)."""
@@ -139,7 +150,7 @@ class KittiDC(PairSource):
             if not files:
                 raise FileNotFoundError(f"no OXTS files in {self.root / drive / 'oxts' / 'data'}\n"
                                         f"expected layout:\n{LAYOUT}")
-            rows = np.stack([np.loadtxt(f, ndmin=1)[:6] for f in files])
+            rows = np.stack([_oxts_row(f) for f in files])
             imu_path = self.root / date / "calib_imu_to_velo.txt"
             imu = read_calib(imu_path)
             R, T = _entry(imu, "R", 9, imu_path).reshape(3, 3), _entry(imu, "T", 3, imu_path)

@@ -123,7 +123,10 @@ class ScanNet(PairSource):
         out = []
         for cam in ("color", "depth"):
             path = self._path(scene, "intrinsic", f"intrinsic_{cam}.txt", f"{cam} intrinsics")
-            M = np.loadtxt(path)
+            try:
+                M = np.loadtxt(path, ndmin=2)
+            except ValueError as exc:
+                raise ValueError(f"cannot read {path} as a matrix of numbers: {exc}") from None
             if M.shape not in ((4, 4), (3, 3)):
                 raise ValueError(f"{path}: expected a 4 x 4 (or 3 x 3) matrix, got shape {M.shape}")
             out.append(cameras.check_intrinsics(M[:3, :3], None, str(path)))
