@@ -47,7 +47,9 @@ class FreeRegConfig:
     densify: str = "fast"  # "fast" | "multiscale" | "none"
     depth_min: float = 0.01
     depth_max: float = 10.0
-    edge_filter_m: float = 0.2  # 3x3 depth-range edge filter on projected depth; 0 disables
+    # The official 6 x 6 edge filter on the monocular depth map before its back-projection
+    # for geometric features (projection.edge_filter); 0 disables. There is none on the cloud.
+    edge_filter_m: float = 0.2
     # Geometric features.
     geometric: str = "fpfh"  # "fpfh" | "fcgf"
     voxel_size: float = 0.025  # FCGF's voxel (the paper's)
@@ -63,6 +65,9 @@ class FreeRegConfig:
     ransac_iters: int = 50_000
     kabsch_inlier_m: float = 0.2
     kabsch_with_scale: bool = True
+    kabsch_scoring: str = "official"  # Open3D's fitness score; "matches": scored by the matches it explains
+    kabsch_confidence: float = 1.0  # the official call never stops early; < 1 stops early (a speed-up)
+    kabsch_max_scale_ratio: float = 0.0  # > 0 rejects similarities scaling by more (0: the official call)
     ransac_n: int = 4
     pnp_reproj_px: float = 10.0
     pnp_method: str = "iterative"  # the paper's (OpenCV's default); "usac": ~100x faster, coarser poses
@@ -102,6 +107,8 @@ def config_for(dataset: str, kitti_trans_threshold: float = 3.0, **changes) -> F
         base = FreeRegConfig()
         if name in ("scannet", "demo"):  # the official config/demo.yaml is scannet.yaml's setting
             base = base.override(depth_max=15.0)
+        elif name == "3dmatch":
+            base = base.override(densify="none")  # the raw sensor depth, holes kept
     elif name in outdoor:
         base = FreeRegConfig(
             outdoor=True,
@@ -110,7 +117,7 @@ def config_for(dataset: str, kitti_trans_threshold: float = 3.0, **changes) -> F
             densify="multiscale",
             depth_min=0.5,
             depth_max=80.0,
-            edge_filter_m=0.0,
+            edge_filter_m=1.0,
             voxel_size=0.3,
             fpfh_voxel=0.5,
             tau_g=5.0,

@@ -81,14 +81,19 @@ def aggregate(
     """Dataset-level metrics from per-pair rows with keys ``IR`` (fraction), ``IN``, ``RE``, ``TE``.
 
     Returns percentages ``FMR``, ``IR``, ``RR`` and ``RR@<deg>deg/<m>m`` for each ladder rung,
-    the mean ``IN``, the mean and median ``RE`` / ``TE`` over pairs that have an estimate, and
-    ``n_pairs`` / ``n_failed`` (pairs without an estimate). An empty list gives NaNs. A row
+    the mean ``IN``, the mean and median ``RE`` / ``TE`` over pairs that have an estimate
+    (``RE``, ``TE``, ``RE_median``, ``TE_median``) and over the registered pairs
+    (``RE_reg``, ``TE_reg``, ``RE_reg_median``, ``TE_reg_median``), and ``n_pairs`` /
+    ``n_failed`` (pairs without an estimate). The official tables average RE / TE over
+    *all* pairs, a failed pair counting with the random pose the official code returns; a
+    failed solve here has no pose, so that average cannot be formed. An empty list gives NaNs. A row
     whose ``IR`` is not a fraction in [0, 1] (a percentage, say) raises ``ValueError``.
     """
     n = len(rows)
     out: dict = {"n_pairs": n}
     if n == 0:
-        for key in ("FMR", "IR", "IN", "RR", "RE", "TE", "RE_median", "TE_median"):
+        for key in ("FMR", "IR", "IN", "RR", "RE", "TE", "RE_median", "TE_median",
+                    "RE_reg", "TE_reg", "RE_reg_median", "TE_reg_median"):
             out[key] = math.nan
         out["n_failed"] = 0
         for deg, m in ladder:
@@ -112,6 +117,11 @@ def aggregate(
     out["TE"] = float(np.mean(te[has])) if has.any() else math.nan
     out["RE_median"] = float(np.median(re[has])) if has.any() else math.nan
     out["TE_median"] = float(np.median(te[has])) if has.any() else math.nan
+    reg = np.array([registered(a, b, rot_deg, trans_m) for a, b in zip(re, te)], dtype=bool)
+    out["RE_reg"] = float(np.mean(re[reg])) if reg.any() else math.nan
+    out["TE_reg"] = float(np.mean(te[reg])) if reg.any() else math.nan
+    out["RE_reg_median"] = float(np.median(re[reg])) if reg.any() else math.nan
+    out["TE_reg_median"] = float(np.median(te[reg])) if reg.any() else math.nan
     out["n_failed"] = int(n - has.sum())
     for deg, m in ladder:
         out[f"RR@{deg:g}deg/{m:g}m"] = 100.0 * float(

@@ -33,7 +33,8 @@ DEFAULT_VARIANTS = (
 class DepthView:
     """The point cloud seen from its depth camera.
 
-    ``raw (H_d, W_d)``: projected depth (0 = empty); ``dense``: after densification;
+    ``raw (H_d, W_d)``: the sensor depth or the projected cloud (0 = empty), which is also
+    the depth side's ground truth in :func:`evaluate`; ``dense``: after densification;
     ``index (H_d, W_d) int64``: the point behind each raw pixel (-1 = none); ``ids``:
     class ids of the dense map (synthetic pairs only, else None).
     """
@@ -45,27 +46,36 @@ class DepthView:
 
 
 def depth_view(pair: Pair, cfg: FreeRegConfig) -> DepthView:
-    """Project the pair's cloud on its depth camera, edge-filter and densify it.
+    """The depth map of the pair's depth camera, densified per ``cfg.densify``.
 
-    Raises ``ValueError`` for a pair that fails :meth:`Pair.validate` or whose cloud leaves
-    the depth view empty (the message counts where the points went).
+    As in the official code the map is the depth frame's own sensor depth when the pair has
+    one (``pair.sensor_depth``: 3DMatch, ScanNet, KITTI-DC), used as it is; otherwise the
+    cloud is projected on the depth camera (z-buffered, no edge filter). Depths outside
+    ``(cfg.depth_min, cfg.depth_max)`` become holes.
+
+    Raises ``ValueError`` for a pair that fails :meth:`Pair.validate` or whose depth view is
+    empty (the message counts where the points went).
     """
     pair.validate()
     if len(pair.points) == 0:
         raise ValueError(f"pair {pair.name}: the point cloud is empty")
-    raw, index = projection.project_to_depth(
-        pair.points, pair.K_depth, cameras.invert(pair.T_pc_sensor), pair.depth_size,
-        cfg.depth_min, cfg.depth_max,
-    )
-    if cfg.edge_filter_m > 0:
-        raw = projection.edge_filter(raw, cfg.edge_filter_m)
-        index[raw == 0] = -1
+    if pair.sensor_depth is not None:
+        raw = np.asarray(pair.sensor_depth, dtype=np.float64).copy()
+        raw[~((raw > cfg.depth_min) & (raw < cfg.depth_max))] = 0.0
+        index = np.full(raw.shape, -1, dtype=np.int64)
+    else:
+        raw, index = projection.project_to_depth(
+            pair.points, pair.K_depth, cameras.invert(pair.T_pc_sensor), pair.depth_size,
+            cfg.depth_min, cfg.depth_max,
+        )
     if not np.any(raw > 0):
-        raise ValueError(f"pair {pair.name}: no point of the cloud projects into the depth view; {_where_points_went(pair, cfg)}")
-    dense = densify.densify(raw, cfg.densify, max_depth=max(cfg.depth_max, 1.0) * 1.5)
+        where = ("its sensor_depth has no pixel in that range" if pair.sensor_depth is not None
+                 else _where_points_went(pair, cfg))
+        raise ValueError(f"pair {pair.name}: no point of the cloud projects into the depth view; {where}")
+    dense = densify.densify(raw, cfg.densify)
     dense[(dense <= cfg.depth_min) | (dense >= cfg.depth_max)] = 0.0
     ids = None
-    if pair.point_ids is not None:
+    if pair.point_ids is not None and np.any(index >= 0):
         ids = _nearest_fill(np.where(index >= 0, pair.point_ids[np.maximum(index, 0)], 0), index >= 0)
         ids[dense == 0] = 0
     return DepthView(raw, dense, index, ids)
@@ -82,7 +92,7 @@ def _where_points_went(pair: Pair, cfg: FreeRegConfig) -> str:
     return (
         f"of its {len(z)} points {int(front.sum())} lie in front of the depth camera, {int(in_range.sum())} within "
         f"depth_min..depth_max = {cfg.depth_min:g}..{cfg.depth_max:g} m and {int(inside.sum())} inside its {W} x {H} view "
-        f"(before the {cfg.edge_filter_m:g} m edge filter); check T_pc_sensor (the depth camera in the cloud's frame), "
+        "; check T_pc_sensor (the depth camera in the cloud's frame), "
         "K_depth and depth_size"
     )
 
@@ -204,12 +214,19 @@ def compute_features(
         diff_img = features.sample_features(f_img, uv_img, pair.image_size)
         diff_dep = features.sample_features(f_dep, uv_dep, pair.depth_size)
     if geometric:
-        cloud_img, _ = cameras.backproject(np.where(mono < cfg.depth_max, mono, 0), pair.K_image)
+        # As the official code: the monocular map loses its edge pixels (``cfg.edge_filter_m``)
+        # and its depths outside the range before back-projection; the depth side's cloud is
+        # the back-projection of the depth map the pipeline uses, not a stored or wider cloud.
+        mono_cloud = np.where((mono > cfg.depth_min) & (mono < cfg.depth_max), mono, 0.0)
+        if cfg.edge_filter_m > 0:
+            mono_cloud = projection.edge_filter(mono_cloud, cfg.edge_filter_m)
+        cloud_img, _ = cameras.backproject(mono_cloud, pair.K_image)
+        cloud_dep = cameras.transform(pair.T_pc_sensor, cameras.backproject(view.dense, pair.K_depth)[0])
         # Normals face each cloud's own viewpoint, so FPFH signs agree across the two sides.
         good = np.isfinite(pts_img).all(1)
         # ``at``: only the features the keypoints will read are computed.
         down_img, feats_img = geo.geometric_features(cloud_img, cfg, at=pts_img[good])
-        down_pc, feats_pc = geo.geometric_features(pair.points, cfg, camera_location=pair.T_pc_sensor[:3, 3],
+        down_pc, feats_pc = geo.geometric_features(cloud_dep, cfg, camera_location=pair.T_pc_sensor[:3, 3],
                                                    at=pts_dep)
         geo_img = np.zeros((len(uv_img), feats_img.shape[1]))
         geo_img[good] = geo.pixel_features(pts_img[good], down_img, feats_img, cfg.tau_g)
@@ -306,27 +323,46 @@ def match(feats: PairFeatures, w: float, device: str = "cpu") -> Matches:
 
 
 def solve(pair: Pair, feats: PairFeatures, m: Matches, cfg: FreeRegConfig, solver: str) -> pose.PoseResult:
-    """Estimate ``T_cam_pc`` from matches with ``solver`` = ``"kabsch"`` or ``"pnp"``."""
-    pts_pc = feats.pts_depth[m.idx_depth]
+    """Estimate ``T_cam_pc`` from matches with ``solver`` = ``"kabsch"`` or ``"pnp"``.
+
+    Kabsch-RANSAC gets every keypoint of both sides and the matches between them, as the
+    official code passes them to Open3D (whose score reads the whole keypoint clouds).
+    """
     if solver == "kabsch":
         return pose.kabsch_ransac(
-            feats.pts_image[m.idx_image], pts_pc, cfg.kabsch_inlier_m, cfg.ransac_iters,
+            feats.pts_image, feats.pts_depth, cfg.kabsch_inlier_m, cfg.ransac_iters,
             cfg.ransac_n, cfg.kabsch_with_scale, cfg.min_matches_kabsch, cfg.seed,
+            max_scale_ratio=cfg.kabsch_max_scale_ratio,
+            corres=np.stack([m.idx_image, m.idx_depth], axis=1),
+            confidence=cfg.kabsch_confidence, scoring=cfg.kabsch_scoring,
         )
     if solver == "pnp":
         return pose.pnp_ransac(
-            feats.uv_image[m.idx_image], pts_pc, pair.K_image, cfg.pnp_reproj_px,
+            feats.uv_image[m.idx_image], feats.pts_depth[m.idx_depth], pair.K_image, cfg.pnp_reproj_px,
             cfg.ransac_iters, cfg.min_matches_pnp, method=cfg.pnp_method, workers=cfg.pnp_workers,
         )
     raise ValueError(f"unknown solver {solver!r}; expected 'kabsch' or 'pnp'")
 
 
 def evaluate(pair: Pair, feats: PairFeatures, m: Matches, result: pose.PoseResult, cfg: FreeRegConfig) -> dict:
-    """Per-pair metrics: ``IR`` (fraction), ``IN``, ``RE``, ``TE``, ``registered``."""
+    """Per-pair metrics: ``IR`` (fraction), ``IN``, ``RE``, ``TE``, ``registered``.
+
+    As in the official evaluation both sides of a match are lifted with the ground-truth
+    depth of their own frame: the image side with ``pair.depth_gt``, the depth side with
+    the depth frame's true depth (``view.raw``: the sensor depth, raw on 3DMatch, or the
+    projected cloud), not with the densified map the features were computed on. A match
+    whose true depth on either side is missing or outside the depth range is not evaluable.
+    """
     if pair.depth_gt is None:
         raise ValueError(f"pair {pair.name} has no ground-truth image depth; matches cannot be scored")
+    uv_dep = feats.uv_depth[m.idx_depth]
+    z_true = cameras.nearest_sample(feats.view.raw, uv_dep)
+    ok = (z_true > cfg.depth_min) & (z_true < cfg.depth_max)
+    pts_true = np.full((len(uv_dep), 3), np.nan)
+    if ok.any():
+        pts_true[ok] = cameras.transform(pair.T_pc_sensor, cameras.lift(uv_dep[ok], z_true[ok], pair.K_depth))
     correct, evaluable = metrics.correct_matches(
-        feats.uv_image[m.idx_image], feats.pts_depth[m.idx_depth], pair.depth_gt, pair.K_image,
+        feats.uv_image[m.idx_image], pts_true, pair.depth_gt, pair.K_image,
         pair.T_cam_pc, cfg.tau_c, (cfg.depth_min, cfg.depth_max),
     )
     ir, inn = metrics.inlier_stats(correct, evaluable)

@@ -56,6 +56,9 @@ def _split_similarity(M: np.ndarray) -> tuple[np.ndarray, float]:
     return T, s
 
 
+KABSCH_SCORINGS = ("official", "matches")
+
+
 def kabsch_ransac(
     pts_cam: np.ndarray,
     pts_pc: np.ndarray,
@@ -65,62 +68,186 @@ def kabsch_ransac(
     with_scale: bool = True,
     min_matches: int = 5,
     seed: int = 0,
-    max_scale_ratio: float = 2.0,
+    max_scale_ratio: float = 0.0,
+    corres: np.ndarray | None = None,
+    confidence: float = 1.0,
+    scoring: str = "official",
 ) -> PoseResult:
-    """Kabsch in RANSAC on matched ``pts_cam (K, 3)`` (image side) and ``pts_pc (K, 3)``.
+    """Kabsch in RANSAC from image-side points ``pts_cam (N, 3)`` to cloud points ``pts_pc (M, 3)``.
 
-    Uses Open3D's ``registration_ransac_based_on_correspondence``. With ``with_scale`` the
-    model is a similarity mapping the image side onto the cloud, which absorbs monocular
-    depth's global scale error (as the official code does); the returned pose is its rigid
-    part. The model is then refined on its inliers at 2x and 1x ``inlier_m``. The inlier
-    distance is measured in the point-cloud frame.
+    ``corres (K, 2) int`` pairs rows of ``pts_cam`` with rows of ``pts_pc`` (the matches);
+    None means the two arrays are matched row by row. As in the official code the clouds
+    are *all* keypoints of each side, not only the matched ones: Open3D's score reads them.
+    With ``with_scale`` the model is a similarity mapping the image side onto the cloud,
+    which absorbs monocular depth's global scale error; the returned pose is its rigid part
+    and ``scale`` the similarity's scale. The model is refined on the matches within 2x,
+    then 1x ``inlier_m`` (measured in the point-cloud frame); ``inliers`` index ``corres``.
 
-    A similarity can cheat: shrinking the image side towards one spot explains many matches
-    when ``inlier_m`` is large (outdoors, 4 m). Minimal samples whose edge lengths differ by
-    more than ``max_scale_ratio`` between the sides are therefore rejected (Open3D's
-    edge-length checker), and a final scale outside ``[1 / max_scale_ratio, max_scale_ratio]``
-    is a failure.
+    ``scoring``:
+
+    * ``"official"``: Open3D's ``registration_ransac_based_on_correspondence`` as the official
+      code calls it (``ransac_n`` samples, no checker, ``confidence`` 1.0: all ``iterations``
+      run). Open3D keeps the hypothesis whose transformed image-side cloud has the most
+      nearest neighbours in the target cloud within ``inlier_m`` (its "fitness"), not the one
+      most matches support. It runs on one thread (``open3d.utility.set_max_threads``) so
+      that ``seed`` fixes the answer: Open3D's parallel workers draw from one shared
+      generator in a racy order.
+    * ``"matches"``: the same sampling and estimator in NumPy with a seeded generator, each
+      hypothesis scored by the number of *matches* within ``inlier_m`` (ties: lower RMSE).
+      A similarity cannot win by shrinking the image side onto a dense patch of the cloud.
+
+    ``max_scale_ratio > 0`` rejects minimal samples whose edge lengths differ by more than
+    that ratio between the sides (Open3D's edge-length checker) and fails a final scale
+    outside ``[1 / ratio, ratio]``; 0 (the official call) checks nothing. ``confidence < 1``
+    stops early once that confidence of having drawn an all-inlier sample is reached (a
+    speed-up; the official code never stops early).
     """
-    import open3d as o3d
-
-    reg = o3d.pipelines.registration
+    if scoring not in KABSCH_SCORINGS:
+        raise ValueError(f"unknown Kabsch-RANSAC scoring {scoring!r}; expected one of {KABSCH_SCORINGS}")
+    if not 0.0 < confidence <= 1.0:
+        raise ValueError(f"confidence must be in (0, 1], got {confidence}")
     pts_cam = np.asarray(pts_cam, dtype=np.float64).reshape(-1, 3)
     pts_pc = np.asarray(pts_pc, dtype=np.float64).reshape(-1, 3)
-    if len(pts_cam) != len(pts_pc):
-        raise ValueError(f"pts_cam has {len(pts_cam)} rows but pts_pc has {len(pts_pc)}")
-    rows = np.nonzero(_finite_rows(pts_cam, pts_pc))[0]
+    if corres is None:
+        if len(pts_cam) != len(pts_pc):
+            raise ValueError(f"pts_cam has {len(pts_cam)} rows but pts_pc has {len(pts_pc)}; "
+                             "pass corres to pair rows of clouds of different sizes")
+        corres = np.stack([np.arange(len(pts_cam))] * 2, axis=1)
+    corres = np.asarray(corres, dtype=np.int64).reshape(-1, 2)
+    if len(corres) and (corres.min() < 0 or corres[:, 0].max() >= len(pts_cam) or corres[:, 1].max() >= len(pts_pc)):
+        raise ValueError(f"corres indexes rows outside pts_cam ({len(pts_cam)}) or pts_pc ({len(pts_pc)})")
+    # Non-finite points (no monocular depth) leave both the clouds and the matches.
+    fin_cam = np.all(np.isfinite(pts_cam), axis=1)
+    fin_pc = np.all(np.isfinite(pts_pc), axis=1)
+    usable = np.nonzero(fin_cam[corres[:, 0]] & fin_pc[corres[:, 1]])[0]
     need = max(min_matches, ransac_n, 3)
-    if len(rows) < need:
-        return _failed("kabsch", f"{len(rows)} usable matches (of {len(pts_cam)}; usable: finite 3D points on both "
+    if len(usable) < need:
+        return _failed("kabsch", f"{len(usable)} usable matches (of {len(corres)}; usable: finite 3D points on both "
                                  f"sides), Kabsch-RANSAC needs at least {need}")
-    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts_cam[rows]))
-    tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts_pc[rows]))
-    idx = np.arange(len(rows), dtype=np.int32)
-    corres = o3d.utility.Vector2iVector(np.stack([idx, idx], axis=1))
-    estimation = reg.TransformationEstimationPointToPoint(with_scaling=with_scale)
-    checkers = [reg.CorrespondenceCheckerBasedOnEdgeLength(1.0 / max_scale_ratio)]
-    o3d.utility.random.seed(seed)
-    result = reg.registration_ransac_based_on_correspondence(
-        src, tgt, corres, inlier_m, estimation, ransac_n, checkers,
-        reg.RANSACConvergenceCriteria(iterations, 0.9999),
-    )
-    M = np.asarray(result.transformation)
-    src_np, tgt_np = pts_cam[rows], pts_pc[rows]
+    new_cam = np.cumsum(fin_cam) - 1
+    new_pc = np.cumsum(fin_pc) - 1
+    src, tgt = pts_cam[fin_cam], pts_pc[fin_pc]
+    pairs = np.stack([new_cam[corres[usable, 0]], new_pc[corres[usable, 1]]], axis=1)
+    if scoring == "official":
+        M = _open3d_ransac(src, tgt, pairs, inlier_m, iterations, ransac_n, with_scale, seed, max_scale_ratio,
+                           confidence)
+    else:
+        M, _ = _match_scored_ransac(src[pairs[:, 0]], tgt[pairs[:, 1]], inlier_m, iterations, ransac_n,
+                                    with_scale, seed, max_scale_ratio, confidence)
+    src_m, tgt_m = src[pairs[:, 0]], tgt[pairs[:, 1]]
     for factor in (2.0, 1.0):
-        resid = np.linalg.norm(src_np @ M[:3, :3].T + M[:3, 3] - tgt_np, axis=1)
+        resid = np.linalg.norm(src_m @ M[:3, :3].T + M[:3, 3] - tgt_m, axis=1)
         inl = np.nonzero(resid < factor * inlier_m)[0]
         if len(inl) < 3:
             break
-        sel = o3d.utility.Vector2iVector(np.stack([inl, inl], axis=1).astype(np.int32))
-        M = np.asarray(estimation.compute_transformation(src, tgt, sel))
-    resid = np.linalg.norm(src_np @ M[:3, :3].T + M[:3, 3] - tgt_np, axis=1)
-    inliers = rows[resid < inlier_m]
+        M = _umeyama(src_m[inl][None], tgt_m[inl][None], with_scale)[0]
+    resid = np.linalg.norm(src_m @ M[:3, :3].T + M[:3, 3] - tgt_m, axis=1)
+    inliers = usable[resid < inlier_m]
     if len(inliers) < 3 or not np.all(np.isfinite(M)) or np.linalg.det(M[:3, :3]) <= 1e-12:
         return _failed("kabsch", f"RANSAC found a degenerate model ({len(inliers)} inliers)")
     T_pc_cam, scale = _split_similarity(M)
-    if not 1.0 / max_scale_ratio <= scale <= max_scale_ratio:
-        return _failed("kabsch", f"the best model scales the image side by {scale:.2f}, beyond the allowed ratio {max_scale_ratio:g}")
+    if max_scale_ratio > 0 and not 1.0 / max_scale_ratio <= scale <= max_scale_ratio:
+        return _failed("kabsch", f"the best model scales the image side by {scale:.2f}, beyond the allowed ratio "
+                                 f"{max_scale_ratio:g}")
     return PoseResult(cameras.invert(T_pc_cam), True, "kabsch", "", inliers, scale)
+
+
+def _open3d_ransac(src, tgt, pairs, inlier_m, iterations, ransac_n, with_scale, seed, max_scale_ratio,
+                   confidence) -> np.ndarray:
+    """Open3D's correspondence RANSAC on one OpenMP thread; the 4 x 4 model (image side -> cloud)."""
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src))
+    target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(tgt))
+    corres = o3d.utility.Vector2iVector(pairs.astype(np.int32))
+    estimation = reg.TransformationEstimationPointToPoint(with_scaling=with_scale)
+    checkers = [reg.CorrespondenceCheckerBasedOnEdgeLength(1.0 / max_scale_ratio)] if max_scale_ratio > 0 else []
+    o3d.utility.random.seed(int(seed))
+    threads = o3d.utility.get_max_threads()
+    o3d.utility.set_max_threads(1)
+    try:
+        result = reg.registration_ransac_based_on_correspondence(
+            source, target, corres, inlier_m, estimation, ransac_n, checkers,
+            reg.RANSACConvergenceCriteria(int(iterations), float(confidence)),
+        )
+    finally:
+        o3d.utility.set_max_threads(threads)
+    return np.asarray(result.transformation).copy()
+
+
+def _umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool) -> np.ndarray:
+    """Least-squares similarity (or rigid) ``(B, 4, 4)`` taking ``src (B, n, 3)`` onto ``dst (B, n, 3)``.
+
+    Umeyama (1991), the estimator Open3D's point-to-point estimation uses. Degenerate
+    samples (coincident points) give non-finite models.
+    """
+    mu_s, mu_d = src.mean(axis=1, keepdims=True), dst.mean(axis=1, keepdims=True)
+    xs, xd = src - mu_s, dst - mu_d
+    sigma = np.einsum("bni,bnj->bij", xd, xs) / src.shape[1]
+    U, D, Vt = np.linalg.svd(sigma)
+    S = np.ones((len(src), 3))
+    S[:, 2] = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
+    S[S[:, 2] == 0, 2] = 1.0
+    R = np.einsum("bij,bj,bjk->bik", U, S, Vt)
+    if with_scale:
+        var_s = np.einsum("bni,bni->b", xs, xs) / src.shape[1]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = np.einsum("bi,bi->b", D, S) / var_s
+    else:
+        s = np.ones(len(src))
+    M = np.zeros((len(src), 4, 4))
+    M[:, :3, :3] = s[:, None, None] * R
+    M[:, :3, 3] = mu_d[:, 0] - np.einsum("bij,bj->bi", M[:, :3, :3], mu_s[:, 0])
+    M[:, 3, 3] = 1.0
+    return M
+
+
+def _match_scored_ransac(src, tgt, inlier_m, iterations, ransac_n, with_scale, seed, max_scale_ratio,
+                         confidence, batch: int = 1000) -> tuple[np.ndarray, int]:
+    """RANSAC over matched rows ``src (K, 3)`` -> ``tgt (K, 3)`` scored by the matches within
+    ``inlier_m``; samples from ``np.random.default_rng(seed)`` in batches of ``batch``
+    hypotheses. The best 4 x 4 model and the number of hypotheses drawn."""
+    rng = np.random.default_rng(seed)
+    K = len(src)
+    best, best_count, best_sse = np.eye(4), -1, np.inf
+    done, needed = 0, int(iterations)
+    iu = np.triu_indices(ransac_n, 1)
+    src_t, tgt_t = np.ascontiguousarray(src.T), np.ascontiguousarray(tgt.T)
+    while done < min(needed, iterations):
+        b = min(batch, int(iterations) - done)
+        idx = rng.integers(0, K, size=(b, ransac_n))
+        done += b
+        s_smp, t_smp = src[idx], tgt[idx]
+        ok = np.ones(b, bool)
+        if max_scale_ratio > 0:
+            ds = np.linalg.norm(s_smp[:, :, None] - s_smp[:, None, :], axis=-1)[:, iu[0], iu[1]]
+            dt = np.linalg.norm(t_smp[:, :, None] - t_smp[:, None, :], axis=-1)[:, iu[0], iu[1]]
+            sim = 1.0 / max_scale_ratio
+            ok = np.all((ds >= sim * dt) & (dt >= sim * ds), axis=1)
+        if not ok.any():
+            continue
+        M = _umeyama(s_smp[ok], t_smp[ok], with_scale)
+        M = M[np.all(np.isfinite(M), axis=(1, 2))]
+        if not len(M):
+            continue
+        # One GEMM for all hypotheses' rotations: (b * 3, 3) @ (3, K).
+        diff = (M[:, :3, :3].reshape(-1, 3) @ src_t).reshape(len(M), 3, K) + M[:, :3, 3:] - tgt_t
+        d2 = np.einsum("bik,bik->bk", diff, diff)
+        inl = d2 < inlier_m ** 2
+        count = inl.sum(axis=1)
+        sse = np.where(inl, d2, 0.0).sum(axis=1)
+        # The first hypothesis with the top count and the least squared error wins: deterministic.
+        order = np.lexsort((sse, -count))
+        k = int(order[0])
+        if count[k] > best_count or (count[k] == best_count and sse[k] < best_sse):
+            best, best_count, best_sse = M[k], int(count[k]), float(sse[k])
+            if confidence < 1.0 and best_count > 0:
+                ratio = best_count / K
+                if ratio >= 1.0:
+                    break
+                needed = int(np.ceil(np.log(1.0 - confidence) / np.log(1.0 - ratio ** ransac_n)))
+    return best, done
 
 
 def _pnp_methods() -> dict[str, int]:

@@ -9,7 +9,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from freereg_lib import config_for, pipeline, synthetic  # noqa: E402
+from freereg_lib import cameras, config_for, pipeline, synthetic  # noqa: E402
 from freereg_lib.backends import get_backend  # noqa: E402
 from freereg_lib.cache import CachedBackend  # noqa: E402
 from freereg_lib.pair import UnreadablePair  # noqa: E402
@@ -112,7 +112,8 @@ def test_run_pairs_rows_do_not_depend_on_the_batch_size(pairs):
     """Stub: the same rows, exactly, with batches of 1, 2 and 4 pairs, an unreadable pair and
     a pair with no usable cloud among them."""
     empty = synthetic.make_pair("indoor", seed=9, image_size=(96, 128))
-    empty.points = empty.points + 100.0  # the whole cloud leaves the depth view
+    # The depth camera turned around: the whole cloud lies behind it.
+    empty.T_pc_sensor = empty.T_pc_sensor @ cameras.make_pose(cameras.rotation_about([0, 1, 0], np.pi), [0, 0, 0])
     items = [pairs[0], UnreadablePair("missing.ply", FileNotFoundError("missing.ply")), empty, *pairs[1:]]
     be = get_backend("stub", CFG)
     results = {b: pipeline.run_pairs(items, be, CFG.override(pair_batch=b), progress=False) for b in (1, 2, 4)}

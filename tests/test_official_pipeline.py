@@ -1,0 +1,232 @@
+"""The depth handling, solvers and evaluation of the pipeline pinned to the official code
+(shared/paper/FACTS.md, "What the official code does"), each on a small hand-made case."""
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from freereg_lib import cameras, config_for, densify, metrics, pipeline, pose, projection
+from freereg_lib.config import FreeRegConfig
+from freereg_lib.pair import Pair
+
+K = cameras.intrinsics(20.0, 20.0, 15.5, 11.5)
+
+
+def _step(h=10, w=10, col=5, near=1.0, far=2.0):
+    d = np.full((h, w), near)
+    d[:, col:] = far
+    return d
+
+
+def test_edge_filter_is_the_official_uncentred_6x6_window():
+    # Window rows/cols [i-3, i+3): a pixel is dropped when its window reaches across the step
+    # at column 5 (columns 3..7) and in the first 3 rows / columns, which the loop skips.
+    out = projection.edge_filter(_step(), 0.2)
+    kept = np.zeros((10, 10), bool)
+    kept[3:, 8:] = True
+    assert np.array_equal(out > 0, kept)
+    assert np.all(out[kept] == 2.0)
+    # The comparison is strict ("range < max_range" keeps): a range of exactly 1 m is dropped.
+    assert not (projection.edge_filter(_step(), 1.0)[3:, 3:8] > 0).any()
+    assert (projection.edge_filter(_step(), 1.0001)[3:, 3:] > 0).all()
+
+
+def test_edge_filter_counts_holes_as_depth_zero():
+    d = np.full((10, 10), 1.0)
+    d[6, 6] = 0.0  # a hole: its 6 x 6 neighbourhood spans 1 m
+    out = projection.edge_filter(d, 0.2)
+    assert not (out[4:10, 4:10] > 0).any() and out[3, 3] == 1.0 and out[9, 3] == 1.0
+
+
+def _sensor_pair(sensor_depth: np.ndarray) -> Pair:
+    h, w = sensor_depth.shape
+    pts, _ = cameras.backproject(sensor_depth, K)
+    img = np.zeros((h, w, 3), np.uint8)
+    return Pair(image=img, K_image=K, points=pts, K_depth=K.copy(), depth_size=(h, w), T_pc_sensor=np.eye(4),
+                T_cam_pc=np.eye(4), depth_gt=sensor_depth.copy(), sensor_depth=sensor_depth, name="sensor")
+
+
+def _holey_depth(seed=0):
+    rng = np.random.default_rng(seed)
+    d = rng.uniform(1.0, 3.0, size=(24, 32)).round(3)
+    d[rng.random(d.shape) < 0.3] = 0.0  # holes, as 3DMatch's raw depth keeps them
+    d[2:6, 2:9] = 0.0
+    return d
+
+
+def test_3dmatch_depth_map_is_the_raw_sensor_depth_bit_for_bit():
+    d = _holey_depth()
+    cfg = config_for("3dmatch")
+    assert cfg.densify == "none"
+    view = pipeline.depth_view(_sensor_pair(d), cfg)
+    assert view.dense.tobytes() == d.tobytes() and view.raw.tobytes() == d.tobytes()
+
+
+def test_scannet_densifies_the_sensor_depth_with_fill_in_fast():
+    d = _holey_depth()
+    view = pipeline.depth_view(_sensor_pair(d), config_for("scannet"))
+    assert np.array_equal(view.raw, d)
+    expected = densify.fill_in_fast(d, max_depth=15.0)
+    expected[(expected <= 0.01) | (expected >= 15.0)] = 0.0
+    assert np.array_equal(view.dense, expected)
+    assert (view.dense[d == 0] > 0).mean() > 0.9  # the holes are filled
+
+
+def test_no_edge_filter_on_the_projected_cloud():
+    # A cloud with a 1 m step seen by its own camera: every pixel comes back, the edge included.
+    d = _step(24, 32, col=16)
+    pts, _ = cameras.backproject(d, K)
+    pair = _sensor_pair(d)
+    pair.sensor_depth = None
+    pair.points = pts
+    view = pipeline.depth_view(pair, FreeRegConfig(densify="none"))
+    assert np.allclose(view.raw, d)
+
+
+class _FixedMono:
+    """A backend with a given monocular depth map and no diffusion."""
+
+    def __init__(self, mono):
+        self.mono = mono
+
+    def mono_depth(self, image, depth_gt=None):
+        return self.mono
+
+
+def test_geometric_clouds_are_the_depth_map_and_the_edge_filtered_mono_depth(monkeypatch):
+    from freereg_lib import geometric
+
+    d = _holey_depth()
+    pair = _sensor_pair(d)
+    pair.points = np.vstack([pair.points, [[50.0, 50.0, 50.0]]])  # a stored cloud wider than the view
+    mono = _step(24, 32, col=16, near=1.5, far=2.5)
+    seen = []
+
+    def fake(cloud, cfg, camera_location=None, at=None):
+        seen.append(np.asarray(cloud))
+        return np.asarray(cloud)[:1], np.ones((1, 4))
+
+    monkeypatch.setattr(geometric, "geometric_features", fake)
+    cfg = config_for("scannet", keypoint_grid=(8, 8))
+    feats = pipeline.compute_features(pair, _FixedMono(mono), cfg, diffusion=False, geometric=True)
+    img_cloud, dep_cloud = seen
+    expect_img, _ = cameras.backproject(projection.edge_filter(mono, 0.2), K)
+    assert np.array_equal(img_cloud, expect_img)
+    assert len(img_cloud) == (projection.edge_filter(mono, 0.2) > 0).sum() < mono.size
+    expect_dep, _ = cameras.backproject(feats.view.dense, K)
+    assert np.array_equal(dep_cloud, expect_dep)
+
+
+def test_evaluation_lifts_the_depth_side_with_its_true_depth():
+    d = np.full((24, 32), 2.0)
+    d[:, :4] = 0.0  # a hole in the depth frame's true depth
+    pair = _sensor_pair(d)
+    uv_dep = np.array([[10.0, 10.0], [20.0, 5.0], [30.0, 20.0], [1.0, 8.0]])
+    # The features' depth-side points came from a densified map 0.5 m off: evaluation must not use them.
+    feats = pipeline.PairFeatures(
+        uv_image=uv_dep.copy(), pts_image=np.zeros((3, 3)), uv_depth=uv_dep,
+        pts_depth=cameras.lift(uv_dep, np.full(4, 2.5), K), diff_image=None, diff_depth=None, geo_image=None,
+        geo_depth=None, mono_depth=d, view=pipeline.DepthView(d, np.full_like(d, 2.5), np.full(d.shape, -1), None))
+    m = pipeline.Matches(np.arange(4), np.arange(4))
+    res = pose.PoseResult(np.eye(4), True, "pnp")
+    scores = pipeline.evaluate(pair, feats, m, res, FreeRegConfig())
+    assert scores["IN"] == 3 and scores["IR"] == 1.0  # the hole's match is not evaluable
+
+
+def _outlier_problem(seed=0, n=300, outliers=0.6, scale=1.0):
+    rng = np.random.default_rng(seed)
+    T = cameras.make_pose(cameras.rotation_about([0.2, 1, 0.1], 0.4), [0.3, -0.2, 1.0])
+    pts_pc = rng.uniform([-2, -1, 1], [2, 1, 5], size=(n, 3))
+    pts_cam = cameras.transform(T, pts_pc) / scale
+    bad = rng.random(n) < outliers
+    pts_pc = pts_pc.copy()
+    pts_pc[bad] = rng.uniform([-2, -1, 1], [2, 1, 5], size=(int(bad.sum()), 3))
+    return pts_cam, pts_pc, T
+
+
+def test_pipeline_kabsch_is_the_official_open3d_call(monkeypatch):
+    """All 50k iterations (confidence 1.0: no early stop), ransac_n 4, no checker, every keypoint."""
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    calls = {}
+    real_criteria, real_ransac = reg.RANSACConvergenceCriteria, reg.registration_ransac_based_on_correspondence
+
+    def criteria(iters, conf):
+        calls["criteria"] = (iters, conf)
+        return real_criteria(10, conf)  # keep the test fast; the call's arguments are what is pinned
+
+    def ransac(src, tgt, corres, dist, est, n, checkers, crit):
+        calls["ransac"] = (len(src.points), len(tgt.points), len(corres), dist, n, len(checkers))
+        return real_ransac(src, tgt, corres, dist, est, n, checkers, crit)
+
+    monkeypatch.setattr(reg, "RANSACConvergenceCriteria", criteria)
+    monkeypatch.setattr(reg, "registration_ransac_based_on_correspondence", ransac)
+    pts_cam, pts_pc, _ = _outlier_problem()
+    feats = pipeline.PairFeatures(np.zeros((300, 2)), pts_cam, np.zeros((300, 2)), pts_pc, None, None, None, None,
+                                  None, None)
+    m = pipeline.Matches(np.arange(0, 300, 3), np.arange(0, 300, 3))
+    pipeline.solve(None, feats, m, FreeRegConfig(), "kabsch")
+    assert calls["criteria"] == (50_000, 1.0)
+    assert calls["ransac"] == (300, 300, 100, 0.2, 4, 0)
+
+
+def test_match_scored_ransac_runs_every_iteration_unless_told_to_stop_early():
+    pts_cam, pts_pc, _ = _outlier_problem(outliers=0.0)
+    _, drawn = pose._match_scored_ransac(pts_cam, pts_pc, 0.2, 5000, 4, True, 0, 0.0, 1.0)
+    assert drawn == 5000
+    _, drawn = pose._match_scored_ransac(pts_cam, pts_pc, 0.2, 5000, 4, True, 0, 0.0, 0.999)
+    assert drawn == 1000  # clean matches: one batch reaches the confidence
+
+
+@pytest.mark.parametrize("scoring", ["official", "matches"])
+def test_kabsch_recovers_a_similarity_with_outliers(scoring):
+    pts_cam, pts_pc, T = _outlier_problem(scale=1.3, outliers=0.5)
+    res = pose.kabsch_ransac(pts_cam, pts_pc, 0.2, 5000, scoring=scoring)
+    re, te = metrics.pose_errors(res.T_cam_pc, T)
+    assert res.success and re < 0.5 and te < 0.05 and abs(res.scale - 1.3) < 0.01
+
+
+def test_only_the_match_scored_ransac_resists_a_shrinking_similarity():
+    """Wrong matches clustered on one spot of a dense patch: Open3D's nearest-neighbour fitness
+    prefers the model that shrinks the whole image side into the patch; the matches do not."""
+    rng = np.random.default_rng(3)
+    T = cameras.make_pose(cameras.rotation_about([0, 1, 0], 0.3), [0.5, 0.2, 1.0])
+    n = 300
+    pts_pc = rng.uniform([-3, -1, 1], [3, 1, 6], size=(n, 3))
+    pts_cam = cameras.transform(T, pts_pc)
+    clustered = np.arange(n) < 90
+    pts_pc[clustered] = rng.normal(scale=0.05, size=(90, 3)) + [0, 0, 3]
+    scattered = (np.arange(n) >= 90) & (np.arange(n) < 150)
+    pts_pc[scattered] = rng.uniform([-3, -1, 1], [3, 1, 6], size=(60, 3))
+    # The depth side's keypoints: the matched ones and an unmatched dense patch around the spot.
+    cloud = np.vstack([pts_pc, rng.normal(scale=0.15, size=(400, 3)) + [0, 0, 3]])
+    corres = np.stack([np.arange(n), np.arange(n)], axis=1)
+    official = pose.kabsch_ransac(pts_cam, cloud, 0.2, 5000, corres=corres, scoring="official")
+    assert not (official.success and metrics.registered(*metrics.pose_errors(official.T_cam_pc, T), 5, 0.1))
+    assert official.scale < 0.3
+    scored = pose.kabsch_ransac(pts_cam, cloud, 0.2, 5000, corres=corres, scoring="matches")
+    re, te = metrics.pose_errors(scored.T_cam_pc, T)
+    assert scored.success and re < 0.5 and te < 0.05
+
+
+_RUN = textwrap.dedent("""
+    import numpy as np, sys
+    sys.path.insert(0, {tests!r})
+    from test_official_pipeline import _outlier_problem
+    from freereg_lib import pose
+    pts_cam, pts_pc, _ = _outlier_problem(seed=5, n=600, outliers=0.8, scale=1.2)
+    out = [pose.kabsch_ransac(pts_cam, pts_pc, 0.2, 20000, seed=7, scoring=s).T_cam_pc for s in ("official", "matches")]
+    sys.stdout.write(np.stack(out).tobytes().hex())
+""")
+
+
+def test_kabsch_ransac_gives_the_same_bytes_in_separate_processes():
+    import os
+
+    code = _RUN.format(tests=os.path.dirname(__file__))
+    runs = {subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+            for _ in range(3)}
+    assert len(runs) == 1 and len(next(iter(runs))) > 0
