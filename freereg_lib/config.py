@@ -7,6 +7,8 @@ Values come from the paper (ICLR 2024) and the official code, as listed in
 from __future__ import annotations
 
 import dataclasses
+import numbers
+import typing
 from dataclasses import dataclass, field
 
 # The official configs' prompts; the backends append ", best quality" (the official a_prompt), so
@@ -82,6 +84,9 @@ class FreeRegConfig:
     rr_ladder: tuple[tuple[float, float], ...] = INDOOR_LADDER
     extra: dict = field(default_factory=dict)
 
+    def __post_init__(self):
+        _check_types(self)
+
     def override(self, **changes) -> "FreeRegConfig":
         """A copy with ``changes``; unknown names raise a ``TypeError`` naming them."""
         known = {f.name for f in dataclasses.fields(self)}
@@ -133,3 +138,96 @@ def config_for(dataset: str, kitti_trans_threshold: float = 3.0, **changes) -> F
             f"unknown dataset {dataset!r}; expected one of {sorted(indoor | outdoor)}"
         )
     return base.override(**changes)
+
+
+# --------------------------------------------------------------------------------------
+# Type checking of the fields (a grid or papermill value of the wrong type must fail here,
+# once, with the field's name, not later as an error on every pair).
+
+def _check_types(cfg: FreeRegConfig) -> None:
+    """Raise ``TypeError`` naming every field of ``cfg`` whose value has the wrong type.
+
+    Integers are accepted for float fields, lists for tuple fields (papermill and YAML give
+    lists; they are stored as tuples so that configs compare and hash alike). ``bool`` is
+    not an int here, and a number written as text (``"2000"``, ``"5e4"``, ``"false"``) is
+    refused with a hint: YAML reads ``5e4`` as a string.
+    """
+    hints = _field_types()
+    problems = []
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        ok, fixed = _conforms(value, hints[f.name])
+        if not ok:
+            hint = ""
+            if isinstance(value, str):
+                hint = (" (a number or a boolean written as text: YAML reads 5e4 as a string, "
+                        "write 50000 or 5.0e+4, and true / false unquoted)")
+            problems.append(f"{f.name}={value!r} is {type(value).__name__}, expected {_type_name(hints[f.name])}{hint}")
+        elif fixed is not value:
+            object.__setattr__(cfg, f.name, fixed)
+    if problems:
+        raise TypeError("FreeRegConfig: " + "; ".join(problems))
+
+
+_HINTS: dict = {}
+
+
+def _field_types() -> dict:
+    if not _HINTS:
+        _HINTS.update(typing.get_type_hints(FreeRegConfig))
+    return _HINTS
+
+
+def _conforms(value, tp):
+    """``(ok, value)``; for tuple types a list is returned as a tuple."""
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if tp is type(None):
+        return value is None, value
+    if origin in (typing.Union, getattr(__import__("types"), "UnionType", typing.Union)):
+        for arg in args:
+            ok, fixed = _conforms(value, arg)
+            if ok:
+                return True, fixed
+        return False, value
+    if tp is bool:
+        return isinstance(value, (bool, _np_bool())), value
+    if tp is int:
+        return isinstance(value, numbers.Integral) and not isinstance(value, (bool, _np_bool())), value
+    if tp is float:
+        return isinstance(value, numbers.Real) and not isinstance(value, (bool, _np_bool())), value
+    if tp is str:
+        return isinstance(value, str), value
+    if tp is dict or origin is dict:
+        return isinstance(value, dict), value
+    if tp is tuple or origin is tuple:
+        if not isinstance(value, (tuple, list)):
+            return False, value
+        if len(args) == 2 and args[1] is Ellipsis:
+            items = [_conforms(v, args[0]) for v in value]
+        elif args:
+            if len(value) != len(args):
+                return False, value
+            items = [_conforms(v, a) for v, a in zip(value, args)]
+        else:
+            return True, tuple(value)
+        if not all(ok for ok, _ in items):
+            return False, value
+        fixed = tuple(v for _, v in items)
+        same = isinstance(value, tuple) and all(a is b for a, b in zip(fixed, value))
+        return True, value if same else fixed
+    return True, value  # a type this check does not know: accepted
+
+
+def _np_bool():
+    try:
+        import numpy as np
+    except ImportError:  # pragma: no cover
+        return bool
+    return np.bool_
+
+
+def _type_name(tp) -> str:
+    if isinstance(tp, type):
+        return tp.__name__
+    return str(tp).replace("typing.", "")
