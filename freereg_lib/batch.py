@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import errno
 import hashlib
 import itertools
 import json
@@ -146,6 +147,12 @@ def read_rows(out_dir: str | os.PathLike) -> list[dict]:
     if not table:
         raise ValueError(f"{path} is empty; expected a header line")
     header, body = table[0], table[1:]
+    for k, line in enumerate(body, start=2):
+        if len(line) != len(header):
+            raise ValueError(
+                f"{path} line {k} has {len(line)} cell(s) for {len(header)} column(s): the file is cut "
+                "or was edited; re-run the job (run ... --force)"
+            )
     parsers = {c: _column_parser(c, [line[k] for line in body]) for k, c in enumerate(header)}
     rows = []
     for line in body:
@@ -255,7 +262,13 @@ def load_grid(path: str | os.PathLike) -> Grid:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"missing grid file {path}")
-    spec = yaml.safe_load(path.read_text()) or {}
+    try:
+        spec = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ValueError(f"{path}:{where}: not valid YAML ({problem})") from None
     if not isinstance(spec, dict):
         raise ValueError(f"{path}: a grid is a mapping with keys {sorted(_GRID_KEYS)}")
     unknown = sorted(set(spec) - _GRID_KEYS)
@@ -276,6 +289,8 @@ def load_grid(path: str | os.PathLike) -> Grid:
         if not isinstance(values, list) or not values:
             raise ValueError(f"{path}: grid.{k} must be a non-empty list, got {values!r}")
     jobs = []
+    name = str(spec.get("name") or path.stem)
+    check_name(name, f"{path}: `name`")
     for nb in notebooks:
         nb_path = _find_notebook(str(nb), path)
         declared = _declared_parameters(nb_path)
@@ -284,11 +299,27 @@ def load_grid(path: str | os.PathLike) -> Grid:
                 varying = {**s, **dict(zip(axes, point))}
                 params = {**base, **varying}
                 _check_params(params, declared, nb_path, path)
+                _check_param_types(params, declared, nb_path, path)
+                _check_config(params, declared, path)
                 jobs.append(Job(str(nb), nb_path, params, varying))
     ids = [j.id for j in jobs]
     if len(set(ids)) != len(ids):
         raise ValueError(f"{path}: the grid repeats a job (same notebook and parameters)")
-    return Grid(str(spec.get("name") or path.stem), path, jobs)
+    return Grid(name, path, jobs)
+
+
+_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9._+-]*")
+
+
+def check_name(name: str, what: str = "run name") -> str:
+    """``name`` when it is one plain folder name (letters, digits, ``._+-``; no ``/``, no ``..``),
+    so that ``<runs-dir>/<name>`` cannot be outside the runs folder; else ``ValueError``."""
+    if not isinstance(name, str) or not _NAME.fullmatch(name) or ".." in name:
+        raise ValueError(
+            f"{what} {name!r} is not a plain folder name: use letters, digits and . _ + - "
+            "(no '/', no '..'), so the run stays inside the runs folder"
+        )
+    return name
 
 
 def _mapping(value, what: str, path: Path) -> dict:
@@ -312,10 +343,11 @@ def _find_notebook(name: str, grid_path: Path) -> Path:
     raise FileNotFoundError(f"notebook {name!r} not found; looked at {[str(p) for p in tried]}")
 
 
-def _declared_parameters(nb_path: Path) -> set[str]:
+def _declared_parameters(nb_path: Path) -> dict[str, dict]:
+    """The notebook's parameters as papermill reads them: ``{name: {"default": source, ...}}``."""
     import papermill as pm
 
-    declared = set(pm.inspect_notebook(str(nb_path)))
+    declared = pm.inspect_notebook(str(nb_path))
     missing = [p for p in CONTRACT_PARAMS if p not in declared]
     if missing:
         raise ValueError(
@@ -325,13 +357,92 @@ def _declared_parameters(nb_path: Path) -> set[str]:
     return declared
 
 
-def _check_params(params: dict, declared: set[str], nb_path: Path, grid_path: Path) -> None:
-    unknown = sorted(set(params) - declared)
+def _check_params(params: dict, declared, nb_path: Path, grid_path: Path) -> None:
+    unknown = sorted(set(params) - set(declared))
     if unknown:
         raise ValueError(
             f"{grid_path}: parameter(s) {unknown} are not in the `parameters` cell of {nb_path}; "
             f"it declares {sorted(declared)}"
         )
+
+
+def _default_value(declared: dict, name: str):
+    """The notebook's default of parameter ``name`` as a Python value (``_MISSING`` when it is
+    not a literal)."""
+    import ast
+
+    try:
+        return ast.literal_eval(declared[name].get("default", ""))
+    except (ValueError, SyntaxError, TypeError, MemoryError, RecursionError):
+        return _MISSING
+
+
+def _check_param_types(params: dict, declared: dict, nb_path: Path, grid_path: Path) -> None:
+    """Each grid value must have the type of the notebook's default for that parameter.
+
+    ``None`` is accepted anywhere (the notebooks use it for "the default behaviour"), an int
+    where the default is a float, a list where it is a tuple; a default of None or of a form
+    that is not a literal accepts anything. YAML reads ``5e4`` and quoted numbers as strings.
+    """
+    problems = []
+    for k, v in params.items():
+        default = _default_value(declared, k)
+        if v is None or default is None or default is _MISSING:
+            continue
+        want = type(default)
+        if want is bool:
+            ok = isinstance(v, bool)
+        elif want is int:
+            ok = isinstance(v, int) and not isinstance(v, bool)
+        elif want is float:
+            ok = isinstance(v, (int, float)) and not isinstance(v, bool)
+        elif want in (list, tuple):
+            ok = isinstance(v, list)
+        else:
+            ok = isinstance(v, want)
+        if not ok:
+            hint = (" (YAML reads 5e4 and quoted numbers as strings: write 50000 or 5.0e+4, and "
+                    "true / false unquoted)" if isinstance(v, str) else "")
+            problems.append(f"{k}={v!r} is {type(v).__name__}, but the notebook's default is "
+                            f"{declared[k].get('default')} ({want.__name__}){hint}")
+    if problems:
+        raise ValueError(f"{grid_path}: wrong type for {nb_path.name}: " + "; ".join(problems))
+
+
+SOLVERS = ("pnp", "kabsch")  # pipeline.solve's
+
+
+def _check_config(params: dict, declared: dict, grid_path: Path) -> None:
+    """A job's configuration must be valid before anything runs, so that a configuration
+    error fails the grid here, not as a failed row on every pair of every job.
+
+    Checked when the notebook declares them: ``dataset`` with the parameters named like
+    :class:`FreeRegConfig` fields and ``config_overrides`` (built with :func:`config_for`,
+    which checks the fields' types), and ``variants`` (known methods, ``pnp`` / ``kabsch``).
+    """
+    where = f"{grid_path}: job {json.dumps(params, sort_keys=True, default=str)}"
+    if "dataset" in declared:
+        dataset = params.get("dataset", _default_value(declared, "dataset"))
+        fields = {f.name for f in dataclasses.fields(FreeRegConfig)}
+        overrides = params.get("config_overrides", {})
+        if not isinstance(overrides, dict):
+            raise ValueError(f"{where}: config_overrides must be a mapping of FreeRegConfig fields")
+        changes = {k: v for k, v in params.items() if k in fields}
+        changes.update(overrides)
+        if isinstance(dataset, str):
+            try:
+                config_for(dataset, **changes)
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"{where}: {exc}") from None
+    if "variants" in params:
+        from .pipeline import METHODS
+
+        variants = params["variants"]
+        bad = [v for v in (variants if isinstance(variants, list) else [variants])
+               if not (isinstance(v, (list, tuple)) and len(v) == 2 and v[0] in METHODS and v[1] in SOLVERS)]
+        if bad or not isinstance(variants, list):
+            raise ValueError(f"{where}: variants {bad or variants!r} are not [method, solver] with a method "
+                             f"in {list(METHODS)} and a solver in {list(SOLVERS)} (lower case)")
 
 
 # --------------------------------------------------------------------------------------
@@ -343,13 +454,92 @@ def unit_dir(run_dir: Path, job: Job, shard: str) -> Path:
     return run_dir / job.id if n == 1 else run_dir / job.id / f"shard-{i}of{n}"
 
 
+def library_fingerprint() -> str:
+    """``<version>+<12 hex>``: the library's version and a hash of its sources (every
+    ``freereg_lib/**/*.py``), so a job run by another library is known as such."""
+    if not _FINGERPRINT:
+        from . import __version__
+
+        root = Path(__file__).resolve().parent
+        h = hashlib.sha256()
+        for f in sorted(root.rglob("*.py")):
+            h.update(f.relative_to(root).as_posix().encode() + b"\0" + f.read_bytes() + b"\0")
+        _FINGERPRINT.append(f"{__version__}+{h.hexdigest()[:12]}")
+    return _FINGERPRINT[0]
+
+
+_FINGERPRINT: list[str] = []
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def read_done(unit: Path) -> dict | None:
+    """The ``done.json`` of ``unit``, or None when it is missing or unreadable."""
+    try:
+        done = json.loads((unit / "done.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return done if isinstance(done, dict) else None
+
+
+def write_done(unit: Path, job: Job, shard: str, **facts) -> dict:
+    """Write ``unit/done.json`` (atomically, last): the job, its row count and the SHA-256 of
+    ``out/pairs.csv``, the library fingerprint, the notebook's hash and the effective
+    configuration (``out/config.json``); ``facts`` are added. Returns what it wrote."""
+    pairs = unit / "out" / "pairs.csv"
+    config = unit / "out" / "config.json"
+    done = {"notebook": job.notebook, "params": job.params, "shard": shard,
+            "rows": len(read_rows(unit / "out")), "pairs_sha256": _sha256(pairs),
+            "library": library_fingerprint(), "notebook_sha256": _sha256(job.path),
+            "config": json.loads(config.read_text()) if config.is_file() else None, **facts}
+    tmp = unit / "done.json.tmp"
+    tmp.write_text(json.dumps(done, indent=1))
+    tmp.replace(unit / "done.json")  # atomic: a marker is never half written
+    return done
+
+
+def verify_unit(unit: Path) -> str:
+    """Why the finished ``unit`` cannot be trusted (``""`` when it can): ``pairs.csv`` must
+    still have the row count and SHA-256 that ``done.json`` recorded."""
+    done = read_done(unit)
+    if done is None:
+        return f"{unit / 'done.json'} is missing or unreadable"
+    pairs = unit / "out" / "pairs.csv"
+    if "pairs_sha256" not in done or "rows" not in done:
+        return f"{unit / 'done.json'} records no row count and hash of pairs.csv (an older runner): re-run the job"
+    if not pairs.is_file():
+        return f"{pairs} is missing although the job finished: re-run the job (run ... --force)"
+    if _sha256(pairs) != done["pairs_sha256"]:
+        try:
+            now = f"{len(read_rows(unit / 'out'))} now"
+        except ValueError as exc:
+            now = str(exc)
+        return (f"{pairs} changed since the job finished ({done['rows']} rows recorded, {now}); it is "
+                "truncated, cut or edited: re-run the job (run ... --force) or restore the file")
+    return ""
+
+
+def stale_reason(unit: Path, job: Job) -> str:
+    """Why a finished ``unit`` is out of date (``""`` when it is not): another library or
+    notebook than the current ones made it."""
+    done = read_done(unit) or {}
+    why = []
+    if done.get("library") != library_fingerprint():
+        why.append(f"library {done.get('library')} (now {library_fingerprint()})")
+    if done.get("notebook_sha256") != _sha256(job.path):
+        why.append(f"another version of {job.notebook}")
+    return "finished with " + " and ".join(why) if why else ""
+
+
 def is_done(unit: Path, job: Job, shard: str) -> bool:
-    """True when ``unit`` holds a finished execution of ``job`` with the same parameters."""
-    marker = unit / "done.json"
-    if not marker.is_file():
+    """True when ``unit`` holds a finished execution of ``job`` with the same parameters, by
+    the current library and notebook, whose ``pairs.csv`` is intact (:func:`verify_unit`)."""
+    done = read_done(unit)
+    if done is None or done.get("params") != job.params or done.get("shard") != shard:
         return False
-    done = json.loads(marker.read_text())
-    return done.get("params") == job.params and done.get("shard") == shard
+    return not verify_unit(unit) and not stale_reason(unit, job)
 
 
 def run_job(job: Job, unit: Path, shard: str, kernel: str = "python3", log_output: bool = False) -> str | None:
@@ -363,6 +553,7 @@ def run_job(job: Job, unit: Path, shard: str, kernel: str = "python3", log_outpu
     import papermill as pm
 
     out = unit / "out"
+    unit.mkdir(parents=True, exist_ok=True)
     for stale in ("done.json", "error.txt"):
         (unit / stale).unlink(missing_ok=True)
     shutil.rmtree(out, ignore_errors=True)
@@ -386,16 +577,35 @@ def run_job(job: Job, unit: Path, shard: str, kernel: str = "python3", log_outpu
                 f"the notebook finished without writing {out / 'pairs.csv'} "
                 "(a batch notebook writes its rows with freereg_lib.batch.write_rows(rows, out_dir))"
             )
+        same_error = configuration_failure(read_rows(out))
+        if same_error:
+            raise RuntimeError(same_error)
     except Exception as exc:  # any failure is recorded per job so the others go on
+        if isinstance(exc, OSError) and exc.errno in _FATAL_ERRNOS:
+            raise  # a full disk or a read-only folder stops the run: every next job would fail too
         headline, detail = _describe_failure(exc)
         (unit / "error.txt").write_text(f"{headline}\n\n{detail}\n")
         return headline
-    done = {"notebook": job.notebook, "params": job.params, "shard": shard,
-            "seconds": round(time.time() - start, 3), "finished": time.strftime("%Y-%m-%dT%H:%M:%S")}
-    tmp = unit / "done.json.tmp"
-    tmp.write_text(json.dumps(done, indent=1))
-    tmp.replace(unit / "done.json")  # atomic: a marker is never half written
+    write_done(unit, job, shard, seconds=round(time.time() - start, 3),
+               finished=time.strftime("%Y-%m-%dT%H:%M:%S"))
     return None
+
+
+_FATAL_ERRNOS = {errno.ENOSPC, errno.EROFS, errno.EACCES, errno.EPERM, errno.EDQUOT}
+_EXCEPTION_TEXT = re.compile(r"^[A-Za-z_][\w.]*(Error|Exception)\b")
+
+
+def configuration_failure(rows: list[dict]) -> str:
+    """A message when every row failed with the same exception (a configuration error such
+    as an unknown solver repeated on every pair, not a result), else ``""``."""
+    errors = {str(r.get("error", "")) for r in rows}
+    if not rows or len(errors) != 1:
+        return ""
+    error = errors.pop()
+    if not _EXCEPTION_TEXT.match(error):
+        return ""
+    return (f"every one of the {len(rows)} row(s) failed with the same error, so the job has no "
+            f"result (a configuration error?): {error}")
 
 
 def _describe_failure(exc: Exception) -> tuple[str, str]:
@@ -417,6 +627,8 @@ class Report:
     skipped: list[str] = field(default_factory=list)
     failed: dict[str, str] = field(default_factory=dict)
     incomplete: dict[str, str] = field(default_factory=dict)
+    rerun: dict[str, str] = field(default_factory=dict)    # finished before, run again: why
+    flagged: dict[str, str] = field(default_factory=dict)  # in the table, but out of date: why
 
     @property
     def ok(self) -> bool:
@@ -425,7 +637,9 @@ class Report:
     def summary(self) -> str:
         lines = [f"{self.run_dir}: {len(self.finished)} job(s) ran, {len(self.skipped)} already "
                  f"done (skipped), {len(self.failed)} failed"]
-        lines += [f"  finished {j}" for j in self.finished]
+        lines += [f"  finished {j}" + (f" (run again: {self.rerun[j]})" if j in self.rerun else "")
+                  for j in self.finished]
+        lines += [f"  OUT OF DATE {j}: {why}; `run` re-runs it" for j, why in self.flagged.items()]
         lines += [f"  FAILED {j}: {e}\n         see {self.run_dir / j}" for j, e in self.failed.items()]
         lines += [f"  not in the table: {j}: {why}" for j, why in self.incomplete.items() if j not in self.failed]
         lines.append(f"results: {self.run_dir / 'results.csv'} and results.md")
@@ -443,7 +657,7 @@ def run(grid_path, name: str | None = None, shard: str = "0/1", runs_dir="runs",
 
     parse_shard(shard)
     grid = load_grid(grid_path)
-    run_dir = Path(runs_dir) / (name or grid.name)
+    run_dir = Path(runs_dir) / check_name(name or grid.name)
     run_dir.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(grid.path, run_dir / "grid.yaml")
     report = Report(run_dir)
@@ -453,6 +667,10 @@ def run(grid_path, name: str | None = None, shard: str = "0/1", runs_dir="runs",
         if not force and is_done(unit, job, shard):
             report.skipped.append(job.id)
             continue
+        if read_done(unit) is not None and not force:
+            why = verify_unit(unit) or stale_reason(unit, job)
+            if why:
+                report.rerun[job.id] = why
         bar.set_postfix_str(job.id, refresh=True)
         error = run_job(job, unit, shard, kernel, log_output)
         if error is None:
@@ -460,18 +678,18 @@ def run(grid_path, name: str | None = None, shard: str = "0/1", runs_dir="runs",
         else:
             report.failed[job.id] = error
     bar.close()
-    report.incomplete = write_table(run_dir, grid.jobs)
+    report.incomplete = write_table(run_dir, grid.jobs, report.flagged)
     return report
 
 
 def merge(grid_path, name: str | None = None, runs_dir="runs") -> Report:
     """Write the results table of a run from the finished jobs and complete shard sets."""
     grid = load_grid(grid_path)
-    run_dir = Path(runs_dir) / (name or grid.name)
+    run_dir = Path(runs_dir) / check_name(name or grid.name)
     if not run_dir.is_dir():
         raise FileNotFoundError(f"no run folder {run_dir}; run the grid (or copy its shards there) first")
     report = Report(run_dir)
-    report.incomplete = write_table(run_dir, grid.jobs)
+    report.incomplete = write_table(run_dir, grid.jobs, report.flagged)
     return report
 
 
@@ -482,17 +700,25 @@ def complete_units(job_dir: Path) -> tuple[list[Path] | None, str]:
     """The folders whose rows make up a job: the job folder when it finished unsharded,
     else a complete set of finished shards ``shard-0ofn .. shard-(n-1)ofn`` (smallest n
     first). Returns ``(None, reason)`` when there is neither."""
+    broken = []
     if (job_dir / "done.json").is_file():
-        return [job_dir], ""
+        why = verify_unit(job_dir)
+        if not why:
+            return [job_dir], ""
+        broken.append(why)
     by_n: dict[int, dict[int, Path]] = {}
     for d in job_dir.glob("shard-*of*"):
         m = re.fullmatch(r"shard-(\d+)of(\d+)", d.name)
         if m and (d / "done.json").is_file():
-            by_n.setdefault(int(m[2]), {})[int(m[1])] = d
+            why = verify_unit(d)
+            if why:
+                broken.append(why)
+            else:
+                by_n.setdefault(int(m[2]), {})[int(m[1])] = d
     for n in sorted(by_n):
         if set(by_n[n]) == set(range(n)):
             return [by_n[n][i] for i in range(n)], ""
-    reasons = [f"shards {sorted(d)} of {n} done" for n, d in sorted(by_n.items())]
+    reasons = broken + [f"shards {sorted(d)} of {n} done" for n, d in sorted(by_n.items())]
     for d in [job_dir, *sorted(job_dir.glob("shard-*of*"))]:
         if (d / "error.txt").is_file():
             where = "" if d == job_dir else f"{d.name} "
@@ -532,7 +758,7 @@ def _config_from_params(params: dict) -> FreeRegConfig:
     return config_for(params["dataset"]) if "dataset" in params else FreeRegConfig()
 
 
-def results_table(run_dir: Path, jobs: list[Job]):
+def results_table(run_dir: Path, jobs: list[Job], flagged: dict | None = None):
     """All jobs' summaries as one DataFrame, and ``{job id: reason}`` for those left out.
 
     Columns: ``job``, ``notebook``, ``shards``, the jobs' parameters (``param_<name>``
@@ -551,9 +777,12 @@ def results_table(run_dir: Path, jobs: list[Job]):
             continue
         try:
             table = job_table(job, units)
-        except (ValueError, FileNotFoundError) as exc:
+        except (ValueError, FileNotFoundError, KeyError) as exc:
             left_out[job.id] = str(exc)
             continue
+        stale = sorted({why for u in units if (why := stale_reason(u, job))})
+        if stale and flagged is not None:
+            flagged[job.id] = "; ".join(stale)
         front = {"job": job.id, "notebook": job.notebook, "shards": len(units)}
         # A parameter named like a summary column (n_pairs, say) gets a ``param_`` prefix.
         front.update({(f"param_{k}" if k in table.columns else k): _plain(job.params.get(k)) for k in param_cols})
@@ -585,10 +814,12 @@ def _with_paper(table, dataset):
     return table
 
 
-def write_table(run_dir: Path, jobs: list[Job]) -> dict[str, str]:
+def write_table(run_dir: Path, jobs: list[Job], flagged: dict | None = None) -> dict[str, str]:
     """Write ``results.csv`` (every column) and ``results.md`` (the columns a reader compares)
-    in ``run_dir``; returns the jobs left out, with the reason."""
-    table, left_out = results_table(run_dir, jobs)
+    in ``run_dir``; returns the jobs left out, with the reason. Jobs in the table that another
+    library or notebook version made are listed in ``results.md`` and put in ``flagged``."""
+    flagged = {} if flagged is None else flagged
+    table, left_out = results_table(run_dir, jobs, flagged)
     table.to_csv(run_dir / "results.csv", index=False)
     lines = [
         f"# Results of {run_dir.name}",
@@ -611,6 +842,9 @@ def write_table(run_dir: Path, jobs: list[Job]) -> dict[str, str]:
         lines += ["", view.to_markdown(index=False, floatfmt=".1f", missingval="-")]
     else:
         lines += ["", "(no finished job yet)"]
+    if flagged:
+        lines += ["", "Out of date (in the table, but `run` would re-run them):", ""] + [
+            f"- `{j}`: {why}" for j, why in flagged.items()]
     if left_out:
         lines += ["", "Not in the table:", ""] + [f"- `{j}`: {why}" for j, why in left_out.items()]
     (run_dir / "results.md").write_text("\n".join(lines) + "\n")
@@ -646,6 +880,10 @@ def main(argv: list[str] | None = None) -> int:
             report = merge(args.grid, args.name, args.runs_dir)
     except (FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a read-only or full disk, a file where a folder should be
+        where = f" {exc.filename}" if exc.filename else ""
+        print(f"error: cannot write or read{where}: {exc.strerror or exc}", file=sys.stderr)
         return 2
     print(report.summary())
     if args.command == "run":

@@ -191,7 +191,7 @@ def _fake_shards(tmp_path, name, pairs_per_shard):
         unit = tmp_path / "runs" / name / job.id / f"shard-{i}of{n}"
         batch.write_rows([{"pair": p, "method": "FreeReg", "solver": "pnp", "IR": 0.5, "IN": 3,
                            "RE": 1.0, "TE": 0.1} for p in pairs], unit / "out")
-        (unit / "done.json").write_text(json.dumps({"params": job.params, "shard": f"{i}/{n}"}))
+        batch.write_done(unit, job, f"{i}/{n}")
     return grid, job
 
 
