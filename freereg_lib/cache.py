@@ -11,7 +11,12 @@ from disk instead of running Stable Diffusion, ControlNet and ZoeDepth again::
     rows = pipeline.run_pairs(pairs, backend, cfg)   # second time: no model call
 
 Files: ``<cache_dir>/<backend name>/<method>/<key[:2]>/<key>.npz``; the key is a SHA-256
-of the backend name, the method, ``params`` and every input array (dtype, shape, bytes).
+of the backend's full identity (:func:`backend_identity`: its class, every plain setting such
+as the stub's noise or the tiny model's seed, its dtype and device, its weights folder and the
+size and modification time of every weight file, the library version and a hash of the
+backends' code), the method, ``params`` and every input array (dtype, shape, bytes). Each
+entry stores its key and is checked on read; an entry that cannot be read or holds another
+key is reported (a warning naming its path), removed and computed again.
 Size: the nine decoder layers of one 512 x 704 input are about 20 MB in float32 (layer 6
 alone 7 MB); ``half=True`` stores diffusion layers as float16 (half that, returned as
 float32, relative error ~1e-3). Writes are atomic, so an interrupted run leaves no broken
@@ -23,6 +28,8 @@ import hashlib
 import json
 import os
 import tempfile
+import warnings
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +50,82 @@ def feature_params(cfg, resize_hw: tuple[int, int] | None = None) -> dict:
     if resize_hw is not None:
         params["resize_hw"] = tuple(resize_hw)
     return params
+
+
+_SKIP = object()
+
+
+def _plain(value):
+    """``value`` as plain JSON data, or ``_SKIP`` for objects that are not settings (models)."""
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    if type(value) in (tuple, list):
+        items = [_plain(v) for v in value]
+        return _SKIP if any(v is _SKIP for v in items) else items
+    if type(value) is dict:  # not a Counter or other state kept by the backend
+        items = {str(k): _plain(v) for k, v in value.items()}
+        return _SKIP if any(v is _SKIP for v in items.values()) else items
+    if isinstance(value, np.ndarray):
+        return f"array {value.dtype.str}{value.shape} sha256 {hashlib.sha256(np.ascontiguousarray(value).tobytes()).hexdigest()}"
+    if type(value).__module__.split(".")[0] == "torch" and type(value).__name__ in ("device", "dtype"):
+        return str(value)
+    return _SKIP
+
+
+def _weight_files(value, found: dict) -> None:
+    """Every existing file or folder that ``value`` names (paths, in dicts / lists too)."""
+    if isinstance(value, dict):
+        for v in value.values():
+            _weight_files(v, found)
+    elif isinstance(value, (tuple, list)):
+        for v in value:
+            _weight_files(v, found)
+    elif isinstance(value, (str, os.PathLike)):
+        path = Path(value)
+        if path.is_absolute() and path.exists():
+            files = [path] if path.is_file() else sorted(f for f in path.rglob("*") if f.is_file())
+            for f in files:
+                st = f.stat()
+                found[str(f)] = [st.st_size, st.st_mtime_ns]
+
+
+_CODE_HASH: list[str] = []
+
+
+def _backend_code_hash() -> str:
+    if not _CODE_HASH:
+        root = Path(__file__).resolve().parent / "backends"
+        h = hashlib.sha256()
+        for f in sorted(root.glob("*.py")):
+            h.update(f.name.encode() + b"\0" + f.read_bytes())
+        _CODE_HASH.append(h.hexdigest()[:16])
+    return _CODE_HASH[0]
+
+
+def backend_identity(backend) -> dict:
+    """What makes ``backend``'s outputs what they are, besides the inputs and ``params``.
+
+    Its class; every attribute that is a plain setting (numbers, strings, tuples, paths, torch
+    dtype and device: the stub's noise, the tiny model's seed, the real backend's weights
+    folder, ...; models, ``_private`` caches, counters and the config object are left out, the config's relevant
+    fields are ``params``); the size and modification time of every weight file its paths
+    name; the library version and a hash of the backends' code.
+    """
+    from . import __version__
+
+    settings, weights = {}, {}
+    for k, v in sorted(vars(backend).items()):
+        plain = _plain(v)
+        if plain is not _SKIP and not k.startswith("_"):  # _private: caches, lazy models
+            settings[k] = plain
+            _weight_files(v, weights)
+    kind = type(backend)
+    return {"class": f"{kind.__module__}.{kind.__qualname__}", "name": getattr(backend, "name", None),
+            "settings": settings, "weights": weights, "library": __version__, "code": _backend_code_hash()}
 
 
 class CachedBackend:
@@ -69,8 +152,11 @@ class CachedBackend:
         self.half = half
         self.hits = 0
         self.misses = 0
+        self.repaired = 0
+        self.identity = backend_identity(backend)
         # default=str: tuples, paths and numbers all serialise the same way every run.
-        self._params_blob = json.dumps(self.params, sort_keys=True, default=str).encode()
+        self._params_blob = json.dumps({"params": self.params, "backend": self.identity},
+                                       sort_keys=True, default=str).encode()
 
     def __getattr__(self, attr):
         if attr == "backend":  # not set yet (e.g. while unpickling): no recursion
@@ -134,9 +220,10 @@ class CachedBackend:
         out: list = [None] * len(xs)
         todo = []
         for i, path in enumerate(paths):
-            if path.is_file():
+            loaded = self._read(path, self.half)
+            if loaded is not None:
                 self.hits += 1
-                out[i] = self._load(path, self.half)
+                out[i] = loaded
             else:
                 todo.append(i)
         if todo:
@@ -152,16 +239,35 @@ class CachedBackend:
 
     def _cached(self, method: str, inputs: tuple, compute, half: bool) -> list[np.ndarray]:
         path = self.path(method, inputs)
-        if path.is_file():
+        loaded = self._read(path, half)
+        if loaded is not None:
             self.hits += 1
-            return self._load(path, half)
+            return loaded
         self.misses += 1
         return self._store(path, compute(), half)
 
+    def _read(self, path: Path, half: bool) -> list[np.ndarray] | None:
+        """The entry at ``path``, or None when there is none. An entry that cannot be read
+        or holds another key than its name is reported, removed and so computed again."""
+        if not path.is_file():
+            return None
+        try:
+            return self._load(path, half)
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+            warnings.warn(f"feature cache: {path} is corrupt ({type(exc).__name__}: {exc}); "
+                          "removed, computing it again", RuntimeWarning, stacklevel=3)
+            path.unlink(missing_ok=True)
+            self.repaired += 1
+            return None
+
     @staticmethod
     def _load(path: Path, half: bool) -> list[np.ndarray]:
-        with np.load(path) as f:
-            arrays = [f[f"arr_{i}"] for i in range(len(f.files))]
+        with np.load(path, allow_pickle=False) as f:
+            stored_key = str(f["__key__"]) if "__key__" in f.files else None
+            if stored_key != path.stem:
+                raise ValueError(f"it holds the entry of key {stored_key}, not {path.stem}")
+            n = sum(1 for name in f.files if name.startswith("arr_"))
+            arrays = [f[f"arr_{i}"] for i in range(n)]
         return [a.astype(np.float32) if half else a for a in arrays]
 
     @staticmethod
@@ -173,6 +279,6 @@ class CachedBackend:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
         with os.fdopen(fd, "wb") as f:
-            np.savez(f, *stored)
+            np.savez(f, *stored, __key__=np.array(path.stem))
         os.replace(tmp, path)  # atomic: readers never see a half-written file
         return arrays
