@@ -90,6 +90,12 @@ def test_3dmatch_sensor_depth_is_the_depth_png_bit_for_bit(tmp_path):
     assert (pair.sensor_depth[raw == 65535] == 0).all() and (raw == 65535).sum() > 1000
     # The cloud is the back-projection of exactly that array (no voxel grid on 3DMatch).
     assert np.array_equal(pair.points, cameras.backproject(pair.sensor_depth, K3)[0])
+    # And the pipeline's depth map is that raw sensor depth, holes kept (no densification).
+    from freereg_lib import config_for, pipeline
+
+    view = pipeline.depth_view(pair, config_for("3dmatch"))
+    in_range = np.where((expected > 0.01) & (expected < 10.0), expected, 0.0)
+    assert view.dense.tobytes() == in_range.tobytes()
 
 
 def test_scannet_and_kitti_fill_sensor_depth(tmp_path):
