@@ -16,8 +16,13 @@ with the library. From that:
   and prints a score table. A stub, a crash, a wrong answer or a time-out costs that case's
   points, never the run: the exit code is 0.
 
-Grading runs the students' code in this process: do it in a container or a throw-away
-account, as with any autograder. The exercises and their cases are the ``EXERCISES``
+Each student (each path given to ``grade``) is graded in a process of its own with a hard
+time limit (``--limit``), so a student whose code hangs, catches the time-out or calls
+``os._exit`` costs only their own grade; results are printed, and written to ``--json``,
+as each student finishes. The library's reference functions are guarded: a solution that
+replaces one (monkeypatching) or just calls the reference of its exercise scores zero for
+that exercise, with a message. Grading still runs the students' code: do it in a container
+or a throw-away account, as with any autograder. The exercises and their cases are the ``EXERCISES``
 registry below; ``assignments/README.md`` is the teacher's guide.
 """
 from __future__ import annotations
@@ -32,8 +37,12 @@ import json
 import math
 import pkgutil
 import re
+import os
 import signal
+import subprocess
 import sys
+import tempfile
+import time
 import threading
 import tokenize
 import warnings
@@ -51,6 +60,7 @@ CHECK_TAG = "check"
 METADATA_KEY = "freereg_assignment"
 BANNER_ID = "assignment-banner"
 CASE_TIMEOUT_S = 30.0
+STUDENT_LIMIT_S = 600.0  # hard wall-clock limit of one student's grading process
 
 
 # --------------------------------------------------------------------------------------
@@ -72,6 +82,7 @@ class Exercise:
     title: str
     teaches: str
     cases: list[Case] = field(default_factory=list)
+    refs: tuple[str, ...] = ()  # "module.function" of the library's reference: calling it scores 0
 
     @property
     def max_points(self) -> float:
@@ -81,8 +92,8 @@ class Exercise:
 EXERCISES: dict[str, Exercise] = {}
 
 
-def _exercise(function: str, notebook: str, title: str, teaches: str) -> None:
-    EXERCISES[function] = Exercise(function, notebook, title, teaches)
+def _exercise(function: str, notebook: str, title: str, teaches: str, refs: tuple[str, ...] = ()) -> None:
+    EXERCISES[function] = Exercise(function, notebook, title, teaches, refs=refs)
 
 
 def _case(function: str, points: float, name: str):
@@ -97,16 +108,99 @@ def _copy(x: Any) -> Any:
 
 
 _student_timeout: list[float | None] = [None]  # seconds per call of a student's function, set by the grader
+_current_refs: list[tuple[str, ...]] = [()]  # the exercise being graded: its reference functions
+
+
+class ReferenceUsed(Exception):
+    """The student's function called the library's reference of its own exercise."""
+
+
+class ReferenceChanged(Exception):
+    """The student's code replaced a library function (monkeypatching the reference)."""
+
+
+def _ref_function(dotted: str):
+    import importlib
+
+    module, name = dotted.rsplit(".", 1)
+    return getattr(importlib.import_module(f"freereg_lib.{module}"), name)
 
 
 def _call(f: Callable, *args: Any) -> Any:
     """The student's function on copies of the arguments (so it cannot alter the reference's).
 
     Only this call is timed: the reference and its imports do not count against the student.
+    While it runs, a profile hook watches for a call of the exercise's reference function;
+    after it, the library and NumPy are checked for replaced functions (:class:`Guard`).
     """
     args = tuple(_copy(a) for a in args)
-    with _time_limit(_student_timeout[0]):
-        return f(*args)
+    codes = {}
+    for dotted in _current_refs[0]:
+        fn = _GUARD.original(dotted) if _GUARD else _ref_function(dotted)
+        codes[fn.__code__] = dotted
+    used: list[str] = []
+
+    def watch(frame, event, arg):
+        if event == "call" and frame.f_code in codes:
+            used.append(codes[frame.f_code])
+
+    previous = sys.getprofile()
+    sys.setprofile(watch if codes else previous)
+    try:
+        with _time_limit(_student_timeout[0]):
+            out = f(*args)
+    finally:
+        sys.setprofile(previous)
+        if _GUARD:
+            _GUARD.check()
+    if used:
+        raise ReferenceUsed(f"it calls the library's reference freereg_lib.{used[0]}; write the exercise "
+                            "yourself (this exercise scores 0)")
+    return out
+
+
+class Guard:
+    """Every function of the ``freereg_lib`` modules of the references, of NumPy (top level and ``testing``) and
+    of ``math``, with its code object, as they were before any student code ran.
+
+    :meth:`check` raises :class:`ReferenceChanged` naming what a student replaced (a module
+    attribute or a function's ``__code__``), after putting the originals back.
+    """
+
+    def __init__(self):
+        import importlib
+
+        self.modules = [np, np.testing, np.linalg, math]
+        # The modules of the references and what they call (not every module: torch is slow to import).
+        names = sorted({r.split(".")[0] for e in EXERCISES.values() for r in e.refs} | {"cameras"})
+        for name in names:
+            self.modules.append(importlib.import_module(f"freereg_lib.{name}"))
+        self.saved = {}
+        for module in self.modules:
+            for name, value in list(vars(module).items()):
+                if callable(value) and not name.startswith("__"):
+                    self.saved[(module.__name__, name)] = (module, value, getattr(value, "__code__", None))
+
+    def original(self, dotted: str):
+        module, name = dotted.rsplit(".", 1)
+        return self.saved[(f"freereg_lib.{module}", name)][1]
+
+    def check(self) -> None:
+        changed = []
+        for (mod_name, name), (module, value, code) in self.saved.items():
+            now = vars(module).get(name)
+            if now is not value:
+                changed.append(f"{mod_name}.{name}")
+                setattr(module, name, value)
+            elif code is not None and getattr(value, "__code__", None) is not code:
+                changed.append(f"{mod_name}.{name}.__code__")
+                value.__code__ = code
+        if changed:
+            raise ReferenceChanged(f"the code replaced {', '.join(sorted(changed)[:3])} (monkeypatching the "
+                                   "library or NumPy the grader checks against); this exercise scores 0")
+
+
+_GUARD: Guard | None = None
 
 
 def _assert_close(got: Any, want: np.ndarray, what: str, atol: float = 1e-9, rtol: float = 0.0) -> None:
@@ -140,6 +234,7 @@ _exercise(
     "student_project_to_depth", "00_preliminaries", "Render a point cloud into a depth map",
     "rigid transforms, the pinhole model, pixel rounding and z-buffering (the nearest point wins); "
     "this is how FreeReg turns the cloud into a depth image for ControlNet",
+    refs=("projection.project_to_depth",),
 )
 
 
@@ -201,6 +296,7 @@ _exercise(
     "student_inlier_ratio", "00_preliminaries", "The inlier ratio (IR) of one pair",
     "how a pixel-to-point match is judged correct: true depth, back-projection, the inverse pose, "
     "the tau_c threshold, and which matches can be evaluated at all",
+    refs=("metrics.correct_matches", "metrics.inlier_stats"),
 )
 
 
@@ -280,6 +376,7 @@ _exercise(
     "student_kabsch", "02_geometric_features", "The Kabsch algorithm",
     "the closed-form least-squares rigid fit of two matched point sets (centring, SVD of the "
     "cross-covariance, the reflection fix); the solver inside FreeReg's Kabsch-RANSAC",
+    refs=("pose.kabsch_ransac", "pose._umeyama"),
 )
 
 
@@ -339,6 +436,7 @@ _exercise(
     "student_mutual_nn", "03_fusion", "Mutual nearest neighbours",
     "descriptor matching: all pairwise distances with one matrix product, nearest neighbours "
     "both ways, and the mutual check that turns features into pixel-to-point matches",
+    refs=("matching.mutual_nn",),
 )
 
 
@@ -380,6 +478,7 @@ _exercise(
     "student_fuse", "03_fusion", "Fusing diffusion and geometric features",
     "FreeReg's feature fusion: per-row L2 normalisation, the weight w between the two modalities, "
     "and why the fused width stays the same at w = 0 and w = 1",
+    refs=("features.fuse",),
 )
 
 
@@ -427,6 +526,7 @@ _exercise(
     "student_registration_recall", "04_benchmark", "Registration recall over a threshold ladder",
     "how RR is counted: both thresholds strict, and a pair without a pose (NaN errors) "
     "is a failure that still counts in the total",
+    refs=("metrics.aggregate", "metrics.registered"),
 )
 
 
@@ -858,14 +958,21 @@ def load_functions(path: str | Path, timeout: float = CASE_TIMEOUT_S) -> tuple[d
             continue
         try:
             code = compile(_python(cell.source), f"<{Path(path).name} cell {i}>", "exec")
-            with _quiet(), _time_limit(timeout):
-                exec(code, ns)
+            try:
+                with _quiet(), _time_limit(timeout):
+                    exec(code, ns)
+            finally:
+                if _GUARD:
+                    _GUARD.check()
         except BaseException as e:  # noqa: BLE001 - any failure of the student's cell is a result
             if isinstance(e, KeyboardInterrupt):
                 raise
             names = _defined_functions(cell.source) or re.findall(r"^def\s+(\w+)", cell.source, re.MULTILINE)
             for name in names or [f"cell {i}"]:
-                problems[name] = f"its solution cell failed: {_describe(e)}"
+                problems[name] = (str(e) if isinstance(e, ReferenceChanged)
+                                  else f"its solution cell failed: {_describe(e)}")
+                if isinstance(e, ReferenceChanged):
+                    ns.pop(name, None)
     found = {name: ns[name] for name in EXERCISES if callable(dict.get(ns, name))}
     missing = set(EXERCISES) - set(found)
     # A function defined outside its solution cell (an untagged cell) still counts.
@@ -896,9 +1003,11 @@ def grade_function(exercise: Exercise, f: Callable | None, problem: str | None =
                                     "message": "not graded"})
         return result
     not_implemented = 0
+    cheat = ""
     for case in exercise.cases:
         ok, message = False, ""
         _student_timeout[0] = timeout
+        _current_refs[0] = exercise.refs
         try:
             with _quiet():
                 case.run(f)
@@ -906,14 +1015,24 @@ def grade_function(exercise: Exercise, f: Callable | None, problem: str | None =
         except NotImplementedError as e:
             not_implemented += 1
             message = _describe(e)
+        except (ReferenceUsed, ReferenceChanged) as e:
+            cheat = cheat or str(e)
+            message = str(e)
         except BaseException as e:  # noqa: BLE001 - the student's crash is a result
             if isinstance(e, KeyboardInterrupt):
                 raise
             message = _describe(e)
         finally:
             _student_timeout[0] = None
+            _current_refs[0] = ()
         result["cases"].append({"name": case.name, "points": case.points if ok else 0.0, "max": case.points,
                                 "ok": ok, "message": message})
+    if cheat:  # one case is enough: the whole exercise scores zero
+        for c in result["cases"]:
+            c["points"], c["ok"] = 0.0, False
+            c["message"] = c["message"] or cheat
+        result.update(score=0.0, status="refused", message=cheat)
+        return result
     result["score"] = float(sum(c["points"] for c in result["cases"]))
     if not_implemented == len(exercise.cases):
         result["status"], result["message"] = "not implemented", "raises NotImplementedError"
@@ -931,15 +1050,95 @@ def _notebooks_in(folder: Path) -> list[Path]:
 
 
 def grade(path: str | Path, timeout: float = CASE_TIMEOUT_S, verbose: bool = False,
-          print_table: bool = True) -> dict:
-    """Grade a student notebook, or a folder holding one student's notebooks.
+          print_table: bool = True, limit: float = STUDENT_LIMIT_S) -> dict:
+    """Grade a student notebook, or a folder holding one student's notebooks, in a process of
+    its own killed after ``limit`` seconds (see :func:`grade_here` for what is graded).
+
+    When that process ends without a result (killed at the limit, ``os._exit``, a crash), the
+    exercises it had finished keep their scores and the others score 0 with the reason.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such notebook or folder")
+    with tempfile.TemporaryDirectory(prefix="freereg_grade_") as tmp:
+        progress = Path(tmp) / "progress.jsonl"
+        cmd = [sys.executable, "-m", "freereg_lib.assignments", "grade-one", str(path),
+               "--timeout", str(timeout), "--progress", str(progress)]
+        start = time.time()
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                start_new_session=True, cwd=str(ROOT))
+        try:
+            code = proc.wait(timeout=limit)
+            ended = f"its grading process ended (exit code {code}) before finishing this exercise"
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)  # the student's threads and children too
+            proc.wait()
+            ended = (f"its grading process was stopped at the hard limit of {limit:g} s "
+                     "(code that never returns, or catches the time-out)")
+        with contextlib.suppress(OSError):
+            os.killpg(proc.pid, signal.SIGKILL)  # anything the student left running
+        lines = []
+        if progress.is_file():
+            for line in progress.read_text().splitlines():
+                with contextlib.suppress(ValueError):
+                    lines.append(json.loads(line))
+    final = next((x["result"] for x in lines if "result" in x), None)
+    if final is None:
+        wanted = next((x["wanted"] for x in lines if "wanted" in x), None)
+        if wanted is None:  # stopped before it got that far: read it here (no student code runs)
+            wanted = list(EXERCISES) if path.is_dir() else _wanted_in(path)
+        done = {x["exercise"]["exercise"]: x["exercise"] for x in lines if "exercise" in x}
+        exercises = []
+        for name in wanted:
+            if name in done:
+                exercises.append(done[name])
+                continue
+            ex = grade_function(EXERCISES[name], None, ended)
+            ex["status"] = "stopped"
+            exercises.append(ex)
+        skipped = next((x["skipped"] for x in lines if "skipped" in x), [])
+        final = _result(path, exercises, skipped)
+        final["stopped"] = ended
+        final["seconds"] = round(time.time() - start, 1)
+    if print_table:
+        print(format_table(final, verbose))
+    return final
+
+
+def _wanted_in(path: Path) -> list[str]:
+    """The exercises a single notebook is graded on (as :func:`grade_here`), read statically."""
+    try:
+        nb = _read(path)
+    except Exception:  # noqa: BLE001
+        return []
+    stem = _notebook_stem(nb, path)
+    own = [n for n, ex in EXERCISES.items() if ex.notebook == stem]
+    defined = {n for c in nb.cells if c.cell_type == "code" for n in _defined_functions(c.source)}
+    return own + [n for n in EXERCISES if n in defined and n not in own]
+
+
+def _result(path: Path, exercises: list[dict], skipped: list[str]) -> dict:
+    score = float(sum(e["score"] for e in exercises))
+    top = float(sum(e["max"] for e in exercises))
+    return {"path": str(path), "score": score, "max": top, "percent": 100.0 * score / top if top else 0.0,
+            "exercises": exercises, "skipped": skipped}
+
+
+def grade_here(path: str | Path, timeout: float = CASE_TIMEOUT_S, verbose: bool = False,
+               print_table: bool = True, progress: str | Path | None = None) -> dict:
+    """Grade a student notebook, or a folder holding one student's notebooks, in this process.
 
     A folder is graded on every exercise (one missing from it scores 0); a single notebook on
     the exercises of the project notebook it is a version of (found from its metadata or file
     name), or failing that on the exercise functions it defines. Prints a table unless
     ``print_table`` is false, and returns ``{"path", "score", "max", "percent", "exercises": [...]}``
     with one entry per exercise (``score``, ``max``, ``status``, ``message`` and ``cases``).
+    With ``progress``, one JSON line per step goes to that file as it happens (the wanted
+    exercises, each graded exercise, the result), for :func:`grade` to read.
     """
+    global _GUARD
+    if _GUARD is None:
+        _GUARD = Guard()  # before any student code runs
     path = Path(path)
     if path.is_dir():
         files = _notebooks_in(path)
@@ -974,14 +1173,24 @@ def grade(path: str | Path, timeout: float = CASE_TIMEOUT_S, verbose: bool = Fal
             elif name not in found:
                 found[name] = (None, problems.get(name) or f"not defined in {nb_path.name}")
 
+    log = open(progress, "a") if progress else None
+
+    def note(item: dict) -> None:
+        if log:
+            log.write(json.dumps(item) + "\n")
+            log.flush()
+            os.fsync(log.fileno())
+
+    note({"wanted": list(wanted or []), "skipped": skipped})
     exercises = []
     for name in wanted or []:
         f, problem = found.get(name, (None, f"no notebook for {EXERCISES[name].notebook}"))
         exercises.append(grade_function(EXERCISES[name], f, problem, timeout))
-    score = float(sum(e["score"] for e in exercises))
-    top = float(sum(e["max"] for e in exercises))
-    result = {"path": str(path), "score": score, "max": top,
-              "percent": 100.0 * score / top if top else 0.0, "exercises": exercises, "skipped": skipped}
+        note({"exercise": exercises[-1]})
+    result = _result(path, exercises, skipped)
+    note({"result": result})
+    if log:
+        log.close()
     if print_table:
         print(format_table(result, verbose))
     return result
@@ -1000,6 +1209,8 @@ def format_table(result: dict, verbose: bool = False) -> str:
         lines = []
         if e["status"] == "missing":
             lines.append(e.get("message", ""))
+        elif e["status"] in ("stopped", "refused"):
+            lines.append(e.get("message", ""))
         elif e["status"] != "not implemented":
             for c in e["cases"]:
                 if verbose or not c["ok"]:
@@ -1008,6 +1219,8 @@ def format_table(result: dict, verbose: bool = False) -> str:
                     lines.append(text + (f": {c['message']}" if c["message"] else ""))
         notes[len(rows) - 1] = lines
     rows.append(("total", "", f"{_points(result['score'])}/{_points(result['max'])}", f"{result['percent']:.1f} %"))
+    if result.get("stopped") and not result["exercises"]:
+        notes[len(rows) - 1] = [result["stopped"]]
     widths = [max(len(r[k]) for r in rows) for k in range(4)]
     out = [f"Autograder: {result['path']}"]
     for i, row in enumerate(rows):
@@ -1049,6 +1262,12 @@ def main(argv: list[str] | None = None) -> int:
     p_grade.add_argument("--timeout", type=float, default=CASE_TIMEOUT_S, help="seconds allowed per call of a student's function")
     p_grade.add_argument("--json", default=None, help="also write the results to this JSON file")
     p_grade.add_argument("-v", "--verbose", action="store_true", help="list every case, not just the failed ones")
+    p_grade.add_argument("--limit", type=float, default=STUDENT_LIMIT_S,
+                         help="hard limit in seconds for one student's grading process (default 600)")
+    p_one = sub.add_parser("grade-one", help=argparse.SUPPRESS)  # the per-student process of `grade`
+    p_one.add_argument("path")
+    p_one.add_argument("--timeout", type=float, default=CASE_TIMEOUT_S)
+    p_one.add_argument("--progress", required=True)
     sub.add_parser("list", help="list the exercises")
     args = parser.parse_args(argv)
 
@@ -1064,25 +1283,35 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "list":
         print(exercise_table())
         return 0
+    if args.command == "grade-one":
+        grade_here(args.path, args.timeout, print_table=False, progress=args.progress)
+        return 0
 
     results = []
     for i, path in enumerate(args.paths):
         if i:
             print()
         try:
-            results.append(grade(path, args.timeout, args.verbose))
+            results.append(grade(path, args.timeout, args.verbose, limit=args.limit))
         except FileNotFoundError as e:
             print(f"Autograder: {e}")
             results.append({"path": str(path), "score": 0.0, "max": 0.0, "percent": 0.0,
                             "exercises": [], "error": str(e)})
+        sys.stdout.flush()
+        if args.json:  # written as each student finishes: a later crash loses nothing
+            _write_json(Path(args.json), results if len(args.paths) > 1 else results[0])
     if len(results) > 1:
         print("\nSummary")
         width = max(len(r["path"]) for r in results)
         for r in results:
             print(f"{r['path'].ljust(width)}  {_points(r['score'])}/{_points(r['max'])}  ({r['percent']:.1f} %)")
-    if args.json:
-        Path(args.json).write_text(json.dumps(results if len(results) > 1 else results[0], indent=2))
     return 0
+
+
+def _write_json(path: Path, data) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2))
+    tmp.replace(path)
 
 
 if __name__ == "__main__":
