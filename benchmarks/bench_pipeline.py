@@ -638,6 +638,9 @@ def parse_args(argv=None):
     p.add_argument("--pnp-method", default=None,
                    help="cfg.pnp_method: the PnP-RANSAC method of pose.PNP_METHODS (default: the "
                         "config's, \"iterative\", the paper's; \"usac\" is the CPU speed-up)")
+    p.add_argument("--kabsch-scoring", default=None, choices=("official", "matches"),
+                   help="cfg.kabsch_scoring (default: the config's, \"official\", the paper's Open3D call; "
+                        "\"matches\" is the fast correspondence-scored RANSAC)")
     p.add_argument("--pnp-workers", type=int, default=1,
                    help="cfg.pnp_workers: threads sharing the PnP-RANSAC iterations (default 1)")
     p.add_argument("--batched-guidance", action="store_true",
@@ -695,6 +698,8 @@ def main(argv=None) -> int:
     if args.pnp_method is not None:
         overrides["pnp_method"] = args.pnp_method
     overrides["pnp_workers"] = args.pnp_workers
+    if args.kabsch_scoring is not None:
+        overrides["kabsch_scoring"] = args.kabsch_scoring
     if args.batched_guidance:
         overrides["batched_guidance"] = True
     if args.pca_device is not None:
