@@ -230,3 +230,65 @@ def test_kabsch_ransac_gives_the_same_bytes_in_separate_processes():
     runs = {subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
             for _ in range(3)}
     assert len(runs) == 1 and len(next(iter(runs))) > 0
+
+
+def _multiscale_by_the_steps(depth, max_depth=100.0):
+    """IP-Basic's fill_in_multiscale written out step by step with boolean indexing (as its
+    paper and FACTS.md list the steps), to pin the library's np.copyto version bit for bit."""
+    import cv2
+
+    def cross(n):
+        k = np.zeros((n, n), np.uint8)
+        k[n // 2, :] = k[:, n // 2] = 1
+        return k
+
+    def full(n):
+        return np.ones((n, n), np.uint8)
+
+    d_in = depth.astype(np.float32)
+    near = (d_in > 0.1) & (d_in <= 15.0)
+    med = (d_in > 15.0) & (d_in <= 30.0)
+    far = d_in > 30.0
+    s1 = d_in.copy()
+    s1[d_in > 0.1] = max_depth - s1[d_in > 0.1]
+    dil = {k: cv2.dilate(s1 * m, cross(n)) for k, m, n in (("far", far, 3), ("med", med, 5), ("near", near, 7))}
+    s2 = s1.copy()
+    for k in ("far", "med", "near"):
+        s2[dil[k] > 0.1] = dil[k][dil[k] > 0.1]
+    s3 = cv2.morphologyEx(s2, cv2.MORPH_CLOSE, full(5))
+    s4 = s3.copy()
+    s4[s3 > 0.1] = cv2.medianBlur(s3, 5)[s3 > 0.1]
+
+    def below_top(a):
+        mask = np.ones(a.shape, bool)
+        for c in range(a.shape[1]):
+            mask[: np.argmax(a[:, c] > 0.1), c] = False
+        return mask
+
+    empty = ~(s4 > 0.1) & below_top(s4)
+    s5 = s4.copy()
+    s5[empty] = cv2.dilate(s4, full(9))[empty]
+    top = below_top(s5)
+    s7 = s5.copy()
+    for _ in range(6):
+        empty = (s7 < 0.1) & top
+        s7[empty] = cv2.dilate(s7, full(5))[empty]
+    valid = (s7 > 0.1) & top
+    s7[valid] = cv2.medianBlur(s7, 5)[valid]
+    s7[valid] = cv2.bilateralFilter(s7, 5, 0.5, 2.0)[valid]
+    out = s7.copy()
+    out[s7 > 0.1] = max_depth - out[s7 > 0.1]
+    return out.astype(np.float64)
+
+
+def test_fill_in_multiscale_is_ip_basic_step_by_step():
+    # LiDAR-like rows at three ranges (near, medium, far bins), the top rows empty (sky).
+    rng = np.random.default_rng(0)
+    d = np.zeros((60, 90))
+    for r in range(20, 60, 3):
+        cols = rng.random(90) < 0.6
+        d[r, cols] = rng.choice([5.0, 22.0, 45.0]) + rng.normal(scale=0.3, size=cols.sum())
+    d[40:, 70:] = 0.0  # a large hole below the top measurement
+    ours = densify.fill_in_multiscale(d)
+    assert np.array_equal(ours, _multiscale_by_the_steps(d))
+    assert not (ours[:18] > 0).any() and (ours[42:, 72:84] > 0).all()
