@@ -1,0 +1,149 @@
+"""The ``freereg`` command (installed with the package; also ``python -m freereg_lib``).
+
+::
+
+    freereg register IMAGE CLOUD --K fx fy cx cy [options]     # your own image and point cloud
+    freereg register --demo FOLDER [options]                   # the official demo layout
+
+See ``freereg register --help`` and :mod:`freereg_lib.register`. Bad input stops with one line
+naming it (exit status 2); a run that finds no plausible pose still writes its outputs and exits 0
+with a ``FAILED: ...`` result line (``--strict`` makes that exit status 3).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="freereg", description="FreeReg companion commands.")
+    sub = p.add_subparsers(dest="command", required=True)
+    r = sub.add_parser(
+        "register", help="register an image to a point cloud",
+        description="Register an image to a point cloud with FreeReg and write the pose (T_cam_pc maps the cloud "
+                    "into the image camera; T_pc_cam is the camera's pose in the cloud's frame), the matches and the "
+                    "cloud drawn on the image.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    r.add_argument("image", nargs="?", help="the image (PNG / JPEG)")
+    r.add_argument("cloud", nargs="?", help="the point cloud (.ply, .pcd, .npy, .xyz / .txt / .pts), in metres")
+    r.add_argument("--demo", metavar="FOLDER", help="the official demo layout (source_rgb.png, target_pc.ply, "
+                   "intrinsics.json, just_for_eval/) instead of IMAGE CLOUD")
+    g = r.add_argument_group("cameras")
+    g.add_argument("--K", nargs=4, type=float, metavar=("FX", "FY", "CX", "CY"), help="image intrinsics in pixels")
+    g.add_argument("--intrinsics", metavar="FILE", help="image intrinsics from a file: fx fy cx cy, a 3 x 3 matrix, "
+                   "or JSON (fx/fy/cx/cy, K, rgb_intrinsic)")
+    g.add_argument("--depth-pose", metavar="FILE", help="the depth sensor's pose in the cloud's frame (T_pc_sensor, "
+                   "4 x 4 text), or 'identity' when the cloud is in its sensor's frame; without it virtual depth "
+                   "cameras are tried")
+    g.add_argument("--depth-K", nargs=4, type=float, metavar=("FX", "FY", "CX", "CY"),
+                   help="the depth camera's intrinsics (default: the image's)")
+    g.add_argument("--depth-size", nargs=2, type=int, metavar=("W", "H"), help="the depth camera's image size")
+    g.add_argument("--virtual", action="store_true", help="try virtual depth cameras even when one is given")
+    g.add_argument("--rough-pose", metavar="FILE", help="a rough pose of the image camera in the cloud's frame "
+                   "(T_pc_cam, 4 x 4 text): one more virtual camera candidate")
+    g.add_argument("--up", default="auto", help="the cloud's up axis for the virtual cameras: x, y, z, -x, -y, -z")
+    g.add_argument("--views", type=int, default=8, help="virtual camera directions around the up axis")
+    g.add_argument("--no-refine", action="store_true", help="do not re-render from the estimated pose")
+    m = r.add_argument_group("method")
+    m.add_argument("--backend", default="real", choices=("stub", "tiny", "real"),
+                   help="real: SD v1.5 + ControlNet + ZoeDepth (weights, a GPU); tiny: random weights (a smoke test); "
+                        "stub: no model, needs --image-depth")
+    m.add_argument("--weights-dir", help="folder of the model folders (default: $FREEREG_WEIGHTS)")
+    m.add_argument("--device", help="cuda, cuda:N or cpu (default: CUDA when present)")
+    m.add_argument("--method", choices=("FreeReg", "FreeReg-D", "FreeReg-G"),
+                   help="default FreeReg (FreeReg-G with the stub)")
+    m.add_argument("--solver", default="kabsch", choices=("kabsch", "pnp"))
+    m.add_argument("--ransac-iters", type=int, default=50_000, help="the paper's 50000")
+    m.add_argument("--kabsch-scoring", default="official", choices=("official", "matches"),
+                   help="official: Open3D's call, as the paper (~70 s a candidate on a 2-core CPU at 50k); "
+                        "matches: scored by the matches a hypothesis explains (fast)")
+    m.add_argument("--outdoor", action="store_true", help="the paper's outdoor (KITTI) setting")
+    m.add_argument("--seed", type=int, default=0)
+    d = r.add_argument_group("data")
+    d.add_argument("--cloud-scale", type=float, default=1.0, help="multiply the cloud by this (0.001: mm -> m)")
+    d.add_argument("--gt-T-cam-pc", metavar="FILE", help="ground truth, cloud -> camera (4 x 4 text)")
+    d.add_argument("--gt-T-pc-cam", metavar="FILE", help="ground truth, the camera's pose in the cloud's frame "
+                   "(the official demo's rgb2pc.gt.pose.txt)")
+    d.add_argument("--image-depth", metavar="FILE", help="the image's true depth (16-bit PNG), for IR / IN and "
+                   "the stub's monocular depth")
+    d.add_argument("--depth-scale", type=float, default=1000.0, help="depth PNG value per metre")
+    r.add_argument("--out", metavar="DIR", help="output folder (default: freereg_out/<image>-<cloud>)")
+    r.add_argument("--strict", action="store_true", help="exit status 3 when the result is FAILED")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    if args.command == "register":
+        return register_command(args)
+    return 2  # pragma: no cover (argparse requires a command)
+
+
+def _fail(msg: str) -> int:
+    print(f"freereg register: error: {msg}", file=sys.stderr)
+    return 2
+
+
+def register_command(args) -> int:
+    import numpy as np
+
+    from . import cameras
+    from . import register as R
+    from .config import config_for
+
+    try:
+        if args.demo:
+            if args.image or args.cloud:
+                return _fail("give either --demo FOLDER or IMAGE CLOUD, not both")
+            pair = R.load_demo(args.demo)
+        else:
+            if not (args.image and args.cloud):
+                return _fail("give IMAGE CLOUD (and --K fx fy cx cy), or --demo FOLDER")
+            if args.K is not None and args.intrinsics:
+                return _fail("give the image intrinsics once: --K or --intrinsics")
+            K = args.K if args.K is not None else (R.read_intrinsics(args.intrinsics) if args.intrinsics else None)
+            if args.gt_T_cam_pc and args.gt_T_pc_cam:
+                return _fail("give the ground truth once: --gt-T-cam-pc or --gt-T-pc-cam")
+            gt = R.read_pose(args.gt_T_cam_pc, "--gt-T-cam-pc")
+            if args.gt_T_pc_cam:
+                gt = cameras.invert(R.read_pose(args.gt_T_pc_cam, "--gt-T-pc-cam"))
+            size = (args.depth_size[1], args.depth_size[0]) if args.depth_size else None
+            pair = R.load_inputs(args.image, args.cloud, K, args.depth_K, size, R.read_pose(args.depth_pose,
+                                 "--depth-pose"), gt, args.image_depth, args.depth_scale, args.cloud_scale,
+                                 args.outdoor)
+        rough = R.read_pose(args.rough_pose, "--rough-pose")
+        name = "kitti" if args.outdoor else "demo"  # indoor: the official config/demo.yaml (ScanNet's)
+        extra = {"weights_dir": args.weights_dir} if args.weights_dir else {}
+        cfg = config_for(name, seed=args.seed, ransac_iters=args.ransac_iters, kabsch_scoring=args.kabsch_scoring,
+                         extra=extra)
+        if args.ransac_iters < 1:
+            return _fail(f"--ransac-iters must be >= 1, got {args.ransac_iters}")
+    except R.InputError as exc:
+        return _fail(str(exc))
+
+    from .backends import MissingWeightsError, get_backend
+
+    try:
+        backend = get_backend(args.backend, cfg, device=args.device)
+    except (MissingWeightsError, ValueError, RuntimeError) as exc:
+        print(f"freereg register: cannot load the {args.backend} backend:\n{exc}", file=sys.stderr)
+        return 1
+    print(f"image {pair.meta.get('image_path')} ({pair.image_size[1]} x {pair.image_size[0]}), cloud "
+          f"{pair.meta.get('cloud_path')} ({len(pair.points)} points)")
+    try:
+        reg = R.register(pair, backend, cfg, method=args.method, solver=args.solver,
+                         depth_cameras="virtual" if args.virtual else None, refine=not args.no_refine,
+                         rough_T_pc_cam=rough, up=args.up, n_yaw=args.views)
+    except R.InputError as exc:
+        return _fail(str(exc))
+    out = Path(args.out) if args.out else Path("freereg_out") / pair.name.replace("/", "_")
+    paths = R.write_outputs(reg, out)
+    np.set_printoptions(precision=4, suppress=True)
+    print("T_cam_pc (maps the cloud into the image camera):")
+    print(reg.T_cam_pc)
+    print("T_pc_cam (the pose of the camera in the cloud's frame):")
+    print(reg.T_pc_cam)
+    print(f"wrote {', '.join(str(p) for p in paths.values())} ({reg.seconds:.1f} s)")
+    print(f"result: {reg.result}")
+    return 3 if args.strict and not reg.registered else 0
