@@ -32,6 +32,7 @@ EXPECTED = [
     "02_geometric_features.ipynb",
     "03_fusion.ipynb",
     "04_benchmark.ipynb",
+    "05_your_data.ipynb",
 ]
 ALL = sorted(set(EXPECTED) | {p.name for p in NOTEBOOKS.glob("*.ipynb")})
 # Every notebook's parameters cell declares these (the conventions of notebooks/).
@@ -70,6 +71,9 @@ RUNS = {
         params={"dataset": "demo", "data_root": "<tmp>/demo", "seed": 1, "n_pairs": 1},
         knobs={"ransac_iters": 5000, "n_failure_cases": 1}, setup="demo",
     ),
+    # One's own data (issue 18): the ICL pair written as the demo layout and as loose files, smaller.
+    "05_your_data": dict(params={"seed": 1, "n_pairs": 1},
+                         knobs={"ransac_iters": 3000, "n_views": 2, "scale": 0.25}),
 }
 
 
