@@ -17,7 +17,7 @@ INDOOR_PROMPT = "a photo of a room, furniture, household items"
 OUTDOOR_PROMPT = "a vehicle camera photo of street view, trees, cars, people, house, road, sky"
 NEGATIVE_PROMPT = "lowres, bad anatomy, bad hands, cropped, worst quality"
 
-# RR threshold ladders of the supplementary's PnP-vs-Kabsch table: (deg, m).
+# RR threshold ladders of the paper's Table 9 (PnP vs Kabsch, in its appendix): (deg, m).
 INDOOR_LADDER = ((5.0, 0.1), (10.0, 0.2), (15.0, 0.3), (20.0, 0.5), (25.0, 0.5))
 KITTI_LADDER = ((3.0, 1.0), (5.0, 2.0), (7.0, 3.0), (10.0, 3.0), (10.0, 4.0))
 

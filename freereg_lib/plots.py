@@ -69,7 +69,8 @@ def _fill_panels(fig, axes, images: list, titles: list[str], suptitle: str, colo
 def pca_rgb(map_a: np.ndarray, map_b: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
     """Feature maps ``(C, h, w)`` as RGB pictures via a 3-component PCA fitted on both maps.
 
-    One basis for both sides, so matching colours mean similar features (the paper's Fig. 3c).
+    One basis for both sides, so matching colours mean similar features (the paper's Fig. 4c, PCA of
+    decoder features).
     """
     maps = [m for m in (map_a, map_b) if m is not None]
     flat = np.concatenate([m.reshape(m.shape[0], -1).T for m in maps]).astype(np.float64)
@@ -377,7 +378,8 @@ def metric_vs_param(table, x: str, metrics: list[str], group: str, title: str = 
 
 def match_panels(image: np.ndarray, depth_rgb: np.ndarray, panels: list[dict], suptitle: str = "",
                  max_lines: int = 200, seed: int = 0, ncols: int = 1):
-    """Several match sets on the same pair, one panel each (the paper's Fig. 4 e/f/g).
+    """Several match sets on the same pair, one panel each (the paper's Fig. 5 e-g, D / G / fused
+    matches).
 
     Each panel is a dict with ``uv_image (K, 2)``, ``uv_depth (K, 2)``, ``correct (K,) bool``
     (or None) and ``title``. A panel shows the image (left) and the depth map (right) with
@@ -475,7 +477,7 @@ def image_grid(images: list, titles: list[str], suptitle: str = "", cols: int = 
 
 # --------------------------------------------------------------------------------------
 # Added for notebook 04 (benchmark): a re-run table beside the paper's as bars, and RR over
-# a threshold ladder (the supplementary's PnP-vs-Kabsch table).
+# a threshold ladder (the paper's Table 9, PnP vs Kabsch, in its appendix).
 
 def metric_bars(table, metrics: list[str], label_col: str, title: str, ours_label: str = "re-run",
                 paper_label: str = "paper"):

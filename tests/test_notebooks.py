@@ -195,7 +195,7 @@ def _check_benchmark_outputs(out_dir: Path, params: dict) -> None:
     assert set(side["paper_dataset"]) == {"Kitti-DC" if "outdoor" in params["dataset"] else "3DMatch"}
     md = (out_dir / "table1_side_by_side.md").read_text()
     assert "| method" in md and "RR_paper" in md and "stub" in md
-    ladder = pd.read_csv(out_dir / "table8_rr_ladder.csv")
+    ladder = pd.read_csv(out_dir / "table9_rr_ladder.csv")
     assert [c for c in ladder.columns if c.startswith("RR@") and not c.endswith("_paper")], "no RR ladder columns"
     for name in ("failed_pairs.csv", "recorded_errors.csv", "config.json"):
         assert (out_dir / name).is_file(), name
