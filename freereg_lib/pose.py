@@ -128,13 +128,13 @@ def kabsch_ransac(
     new_pc = np.cumsum(fin_pc) - 1
     src, tgt = pts_cam[fin_cam], pts_pc[fin_pc]
     pairs = np.stack([new_cam[corres[usable, 0]], new_pc[corres[usable, 1]]], axis=1)
+    src_m, tgt_m = src[pairs[:, 0]], tgt[pairs[:, 1]]
     if scoring == "official":
         M = _open3d_ransac(src, tgt, pairs, inlier_m, iterations, ransac_n, with_scale, seed, max_scale_ratio,
                            confidence)
     else:
-        M, _ = _match_scored_ransac(src[pairs[:, 0]], tgt[pairs[:, 1]], inlier_m, iterations, ransac_n,
-                                    with_scale, seed, max_scale_ratio, confidence)
-    src_m, tgt_m = src[pairs[:, 0]], tgt[pairs[:, 1]]
+        M, _ = _match_scored_ransac(src_m, tgt_m, inlier_m, iterations, ransac_n, with_scale, seed,
+                                    max_scale_ratio, confidence)
     for factor in (2.0, 1.0):
         resid = np.linalg.norm(src_m @ M[:3, :3].T + M[:3, 3] - tgt_m, axis=1)
         inl = np.nonzero(resid < factor * inlier_m)[0]
@@ -154,7 +154,7 @@ def kabsch_ransac(
 
 def _open3d_ransac(src, tgt, pairs, inlier_m, iterations, ransac_n, with_scale, seed, max_scale_ratio,
                    confidence) -> np.ndarray:
-    """Open3D's correspondence RANSAC on one OpenMP thread; the 4 x 4 model (image side -> cloud)."""
+    """Open3D's correspondence RANSAC on one of its (TBB) threads; the 4 x 4 model (image side -> cloud)."""
     import open3d as o3d
 
     reg = o3d.pipelines.registration
