@@ -2,33 +2,19 @@
 is a failed row of the benchmark, not a failed notebook (issue 16)."""
 from pathlib import Path
 
-import numpy as np
 import papermill
 import pytest
 
-from freereg_lib import batch, cameras
+from freereg_lib import batch
 
-from test_loaders import POSES, render, write_depth, write_rgb
+from test_loaders import POSES, make_scannet
 
 NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
 
 
 def make_scannet_export(root: Path) -> Path:
     """A ScanNet export whose pair list is (0, 20), (0, 40), (20, 40) (every 20th frame of 41)."""
-    s = root / "scene0707_00"
-    K_col, K_dep = cameras.intrinsics(72, 72, 52.0, 31.0), cameras.intrinsics(36, 36, 23.5, 17.5)
-    for sub in ("intrinsic", "pose"):
-        (s / sub).mkdir(parents=True)
-    for name, K in (("color", K_col), ("depth", K_dep)):
-        M = np.eye(4)
-        M[:3, :3] = K
-        np.savetxt(s / "intrinsic" / f"intrinsic_{name}.txt", M)
-    for f in range(41):
-        T = POSES[min(f // 20, 2)]
-        write_rgb(s / "color" / f"{f}.jpg", (72, 96), f)
-        write_depth(s / "depth" / f"{f}.png", render(K_dep, T, (36, 48)))
-        np.savetxt(s / "pose" / f"{f}.txt", T)
-    return root
+    return make_scannet(root, frames={f: POSES[min(f // 20, 2)] for f in range(41)})[0]
 
 
 @pytest.mark.skipif(not (NOTEBOOKS / "04_benchmark.ipynb").is_file(), reason="no notebook 04")

@@ -158,7 +158,9 @@ def test_official_layout_with_separate_colour_and_depth_cameras(tmp_path):
 # --------------------------------------------------------------------------------------
 # ScanNet export layout.
 
-def make_scannet(root, scene="scene0707_00"):
+def make_scannet(root, scene="scene0707_00", frames=None):
+    """A ScanNet export of ``frames`` (frame number -> pose; default: 0, 10, 20, 30 and 40,
+    whose pose is lost tracking, all -inf). Returns the root and the colour / depth intrinsics."""
     s = root / scene
     K_col, K_dep = cameras.intrinsics(72, 72, 52.0, 31.0), cameras.intrinsics(36, 36, 23.5, 17.5)
     for sub in ("intrinsic", "pose"):
@@ -167,11 +169,13 @@ def make_scannet(root, scene="scene0707_00"):
         M = np.eye(4)
         M[:3, :3] = K
         np.savetxt(s / "intrinsic" / f"intrinsic_{name}.txt", M)
-    frames = {0: POSES[0], 10: POSES[1], 20: POSES[2], 30: POSES[3], 40: POSES[1]}
+    if frames is None:
+        frames = {0: POSES[0], 10: POSES[1], 20: POSES[2], 30: POSES[3], 40: np.full((4, 4), -np.inf)}
     for f, T in frames.items():
+        # The depth of a frame with a lost pose is rendered from POSES[1].
         write_rgb(s / "color" / f"{f}.jpg", (72, 96), f)
-        write_depth(s / "depth" / f"{f}.png", render(K_dep, T, (36, 48)))
-        np.savetxt(s / "pose" / f"{f}.txt", T if f != 40 else np.full((4, 4), -np.inf))  # 40: lost tracking
+        write_depth(s / "depth" / f"{f}.png", render(K_dep, T if np.isfinite(T).all() else POSES[1], (36, 48)))
+        np.savetxt(s / "pose" / f"{f}.txt", T)
     return root, K_col, K_dep
 
 

@@ -234,16 +234,20 @@ def _to_ldm_controlnet(state: dict, layers_per_block: int = 2) -> dict:
     fixed = {"time_embedding.linear_1": "time_embed.0", "time_embedding.linear_2": "time_embed.2",
              "conv_in": "input_blocks.0.0", "controlnet_cond_embedding.conv_in": "input_hint_block.0",
              "controlnet_cond_embedding.conv_out": "input_hint_block.14", "controlnet_mid_block": "middle_block_out.0"}
+
+    def resnet(rest: str) -> str:
+        for a, z in res:
+            rest = rest.replace(a, z) if rest.startswith(a + ".") else rest
+        return rest
+
     out = {}
     for k, v in state.items():
         head, _, leaf = k.rpartition(".")
         if head in fixed:
             new = f"{fixed[head]}.{leaf}"
         elif m := re.match(r"down_blocks\.(\d+)\.resnets\.(\d+)\.(.*)", k):
-            b, j, rest = int(m[1]), int(m[2]), m[3]
-            for a, z in res:
-                rest = rest.replace(a, z) if rest.startswith(a + ".") else rest
-            new = f"input_blocks.{b * (layers_per_block + 1) + j + 1}.0.{rest}"
+            b, j = int(m[1]), int(m[2])
+            new = f"input_blocks.{b * (layers_per_block + 1) + j + 1}.0.{resnet(m[3])}"
         elif m := re.match(r"down_blocks\.(\d+)\.attentions\.(\d+)\.(.*)", k):
             new = f"input_blocks.{int(m[1]) * (layers_per_block + 1) + int(m[2]) + 1}.1.{m[3]}"
         elif m := re.match(r"down_blocks\.(\d+)\.downsamplers\.0\.conv\.(.*)", k):
@@ -251,10 +255,7 @@ def _to_ldm_controlnet(state: dict, layers_per_block: int = 2) -> dict:
         elif m := re.match(r"controlnet_down_blocks\.(\d+)\.(.*)", k):
             new = f"zero_convs.{m[1]}.0.{m[2]}"
         elif m := re.match(r"mid_block\.resnets\.(\d+)\.(.*)", k):
-            rest = m[2]
-            for a, z in res:
-                rest = rest.replace(a, z) if rest.startswith(a + ".") else rest
-            new = f"middle_block.{2 * int(m[1])}.{rest}"
+            new = f"middle_block.{2 * int(m[1])}.{resnet(m[2])}"
         elif m := re.match(r"mid_block\.attentions\.0\.(.*)", k):
             new = f"middle_block.1.{m[1]}"
         elif m := re.match(r"controlnet_cond_embedding\.blocks\.(\d+)\.(.*)", k):
