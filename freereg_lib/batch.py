@@ -4,12 +4,20 @@ Command line (run it from the repository root)::
 
     python -m freereg_lib.batch run GRID.yaml [--name NAME] [--shard i/n] [--runs-dir runs]
                                               [--force] [--log-output] [--kernel python3]
+                                              [--executor local|dask] [--workers N] [--gpus 0,1]
+                                              [--scheduler ADDRESS] [--shards N] [--retries N]
+                                              [--resources GPU=1] [--dashboard :8787]
     python -m freereg_lib.batch merge GRID.yaml [--name NAME] [--runs-dir runs]
 
 ``run`` executes every job of the grid that has not finished yet, then writes the results
-table; it exits 1 when a job failed. ``merge`` only writes the table, from whatever finished
-job or complete set of shards lies under ``runs/<name>/`` (copy the shard folders of other
-machines there first); it exits 1 when a job is still incomplete.
+table; it exits 1 when a job failed. The local executor (the default) runs the jobs one
+after the other in this process; ``--executor dask`` runs them as tasks of a Dask cluster
+(:mod:`freereg_lib.cluster`): a local one with ``--workers N`` or one worker per GPU of
+``--gpus``, or the running scheduler at ``--scheduler``; ``--shards N`` splits every job into
+N shards that the engine schedules, merged into the table at the end. ``merge`` only writes
+the table, from whatever finished job or complete set of shards lies under ``runs/<name>/``
+(copy the shard folders of other machines there first after ``--shard i/n`` runs by hand);
+it exits 1 when a job is still incomplete.
 
 The grid file (YAML)::
 
@@ -19,6 +27,8 @@ The grid file (YAML)::
     sets:                                 # explicit parameter sets (default: one empty set)
       - {dataset: 3dmatch, data_root: data/3dmatch}
     grid: {seed: [0, 1]}                  # lists expanded as a cartesian product
+    executor: {kind: dask, gpus: [0, 1]}  # optional; local (default) or dask with its options
+                                          # (freereg_lib.cluster.DaskOptions); flags override it
 
 The jobs are notebooks x sets x grid points; a job's parameters are ``base | set | point``.
 A relative notebook path is looked up in the working directory, then beside the grid file.
@@ -31,7 +41,7 @@ What lands on disk, under ``<runs-dir>/<name>/``::
     <job-id>/out/                the notebook's ``out_dir``: pairs.csv, results.csv, config.json
     <job-id>/error.txt           why the job failed
     <job-id>/done.json           written last: the job finished
-    <job-id>/shard-<i>of<n>/     the same five, per shard, when run with ``--shard i/n``
+    <job-id>/shard-<i>of<n>/     the same five, per shard, when run with ``--shard i/n`` or ``--shards n``
     results.csv, results.md      one row per job x (method, solver), the paper's Table 1 beside
 
 The contract with a benchmark notebook: its ``parameters`` cell declares ``out_dir`` (str)
@@ -59,13 +69,14 @@ import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from . import cluster
 from .config import FreeRegConfig, config_for
 
 CONTRACT_PARAMS = ("out_dir", "shard")
 # Table 1 of the paper names datasets its own way; keys are the ``dataset`` parameter.
 PAPER_DATASETS = {"3dmatch": "3DMatch", "scannet": "ScanNet", "kitti": "Kitti-DC", "kitti_dc": "Kitti-DC"}
 PAPER_METRICS = ("FMR", "IR", "IN", "RR")
-_GRID_KEYS = {"name", "notebook", "notebooks", "base", "sets", "grid"}
+_GRID_KEYS = {"name", "notebook", "notebooks", "base", "sets", "grid", "executor"}
 _STRING_COLUMNS = {"pair", "method", "solver", "error"}  # never parsed as numbers by read_rows
 
 
@@ -248,6 +259,7 @@ class Grid:
     name: str
     path: Path
     jobs: list[Job]
+    executor: dict = field(default_factory=lambda: {"kind": "local"})  # cluster.executor_spec's
 
 
 def load_grid(path: str | os.PathLike) -> Grid:
@@ -291,6 +303,7 @@ def load_grid(path: str | os.PathLike) -> Grid:
     jobs = []
     name = str(spec.get("name") or path.stem)
     check_name(name, f"{path}: `name`")
+    executor = cluster.executor_spec(spec.get("executor"), str(path))
     for nb in notebooks:
         nb_path = _find_notebook(str(nb), path)
         declared = _declared_parameters(nb_path)
@@ -305,7 +318,7 @@ def load_grid(path: str | os.PathLike) -> Grid:
     ids = [j.id for j in jobs]
     if len(set(ids)) != len(ids):
         raise ValueError(f"{path}: the grid repeats a job (same notebook and parameters)")
-    return Grid(name, path, jobs)
+    return Grid(name, path, jobs, executor)
 
 
 _NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9._+-]*")
@@ -647,30 +660,57 @@ class Report:
 
 
 def run(grid_path, name: str | None = None, shard: str = "0/1", runs_dir="runs", force: bool = False,
-        log_output: bool = False, kernel: str = "python3") -> Report:
+        log_output: bool = False, kernel: str = "python3", executor: str | None = None,
+        engine: dict | None = None) -> Report:
     """Run every unfinished job of the grid (shard ``shard`` of each), then write the table.
 
     ``force`` re-runs finished jobs; ``log_output`` streams what the notebooks print to
     this terminal (text only: a tqdm bar that renders as a Jupyter widget does not stream).
+    ``executor`` is ``"local"`` (jobs one after the other here) or ``"dask"`` (tasks of a Dask
+    cluster, :mod:`freereg_lib.cluster`); None takes the grid's ``executor``, else local.
+    ``engine`` holds dask options (:class:`cluster.DaskOptions` fields, None = not given) that
+    override the grid's.
     """
-    from tqdm.auto import tqdm
-
     parse_shard(shard)
     grid = load_grid(grid_path)
+    kind, options = cluster.choose(grid.executor, executor, engine, str(grid.path))
+    if kind == "dask" and shard != "0/1":
+        raise ValueError("--shard i/n splits the pairs by hand for the local executor; with the dask "
+                         "executor use --shards N and the engine schedules the shards")
     run_dir = Path(runs_dir) / check_name(name or grid.name)
     run_dir.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(grid.path, run_dir / "grid.yaml")
     report = Report(run_dir)
+    if kind == "local":
+        _run_here(grid, run_dir, shard, force, log_output, kernel, report)
+    else:
+        _run_on_dask(grid, run_dir, options, force, log_output, kernel, report)
+    report.incomplete = write_table(run_dir, grid.jobs, report.flagged)
+    return report
+
+
+def _needs_run(job: Job, unit: Path, shard: str, force: bool, report: Report, label: str) -> bool:
+    """Whether ``unit`` must run; notes in ``report.rerun`` why a finished one runs again."""
+    if not force and is_done(unit, job, shard):
+        return False
+    if read_done(unit) is not None and not force:
+        why = verify_unit(unit) or stale_reason(unit, job)
+        if why:
+            report.rerun[label] = why
+    return True
+
+
+def _run_here(grid: Grid, run_dir: Path, shard: str, force: bool, log_output: bool, kernel: str,
+              report: Report) -> None:
+    """The local executor: the jobs one after the other in this process."""
+    from tqdm.auto import tqdm
+
     bar = tqdm(grid.jobs, desc=f"{run_dir.name} [{shard}]", unit="job")
     for job in bar:
         unit = unit_dir(run_dir, job, shard)
-        if not force and is_done(unit, job, shard):
+        if not _needs_run(job, unit, shard, force, report, job.id):
             report.skipped.append(job.id)
             continue
-        if read_done(unit) is not None and not force:
-            why = verify_unit(unit) or stale_reason(unit, job)
-            if why:
-                report.rerun[job.id] = why
         bar.set_postfix_str(job.id, refresh=True)
         error = run_job(job, unit, shard, kernel, log_output)
         if error is None:
@@ -678,8 +718,60 @@ def run(grid_path, name: str | None = None, shard: str = "0/1", runs_dir="runs",
         else:
             report.failed[job.id] = error
     bar.close()
-    report.incomplete = write_table(run_dir, grid.jobs, report.flagged)
-    return report
+
+
+def _run_on_dask(grid: Grid, run_dir: Path, options: cluster.DaskOptions, force: bool, log_output: bool,
+                 kernel: str, report: Report) -> None:
+    """The dask executor: every unfinished job, or each unfinished shard of it, one task.
+
+    A job counts as finished when it finished unsharded or every one of its ``options.shards``
+    shards did; the table then merges whichever it has (:func:`complete_units`).
+    """
+    # Workers may run elsewhere (another node of a shared file system, another working folder).
+    where = run_dir.resolve()
+    n = options.shards
+    shards = [f"{i}/{n}" for i in range(n)]
+    tasks: dict[str, tuple] = {}
+    for job in grid.jobs:
+        if not force and (is_done(where / job.id, job, "0/1")
+                          or all(is_done(unit_dir(where, job, s), job, s) for s in shards)):
+            report.skipped.append(job.id)
+            continue
+        if n > 1:  # an unsharded result still here (out of date, or --force) would win in the table
+            (where / job.id / "done.json").unlink(missing_ok=True)
+        for s in shards:
+            label = job.id if n == 1 else f"{job.id} [shard {s}]"
+            unit = unit_dir(where, job, s)
+            if _needs_run(job, unit, s, force, report, label):
+                tasks[label] = (job, unit, s, kernel, log_output)
+    if not tasks:
+        return
+    with cluster.DaskExecutor(options) as engine:
+        for outcome in engine.run(execute_unit, tasks, desc=f"{run_dir.name} [dask]"):
+            if outcome.error is None:
+                report.finished.append(outcome.name)
+                continue
+            report.failed[outcome.name] = outcome.error
+            if outcome.lost:  # the worker or kernel died each time: say so first in error.txt
+                unit = tasks[outcome.name][1]
+                unit.mkdir(parents=True, exist_ok=True)
+                error_file = unit / "error.txt"
+                before = error_file.read_text() if error_file.is_file() else ""
+                last = f"\nThe last attempt's error:\n{before}" if before else ""
+                error_file.write_text(f"{outcome.error}\n{last}")
+
+
+def execute_unit(job: Job, unit: Path, shard: str, kernel: str = "python3", log_output: bool = False) -> str | None:
+    """:func:`run_job` as a task of the dask executor (it runs on a worker).
+
+    A job whose kernel died (killed, out of memory) raises :class:`cluster.Retry`, so the
+    engine runs it again, a bounded number of times; any other failure is the job's own (an
+    error in the notebook) and comes back as its one-line error, to be reported once.
+    """
+    error = run_job(job, unit, shard, kernel, log_output)
+    if error is not None and error.startswith("DeadKernelError"):
+        raise cluster.Retry(error)
+    return error
 
 
 def merge(grid_path, name: str | None = None, runs_dir="runs") -> Report:
@@ -872,13 +964,27 @@ def main(argv: list[str] | None = None) -> int:
             p.add_argument("--force", action="store_true", help="re-run jobs that already finished")
             p.add_argument("--log-output", action="store_true", help="stream the notebooks' output here")
             p.add_argument("--kernel", default="python3", help="Jupyter kernel name (default python3)")
+            g = p.add_argument_group("engine", "where the jobs run (default: the grid's `executor`, else local)")
+            g.add_argument("--executor", help="local (one job after the other, here) or dask")
+            g.add_argument("--scheduler", help="dask: address (tcp://host:8786) or scheduler file of a running "
+                                               "scheduler; default: a cluster on this machine")
+            g.add_argument("--workers", type=int, help="dask, local cluster: worker processes (default 2)")
+            g.add_argument("--gpus", help="dask, local cluster: one worker per GPU id, e.g. 0,1,2,3")
+            g.add_argument("--shards", type=int, help="dask: split every job into N shards (default 1)")
+            g.add_argument("--retries", type=int, help="dask: runs again after the worker or kernel under a "
+                                                       "job died (default 2)")
+            g.add_argument("--resources", help="dask: what a job needs of a worker, e.g. GPU=1")
+            g.add_argument("--dashboard", help="dask, local cluster: dashboard address (default :8787; '' for none)")
     args = parser.parse_args(argv)
     try:
         if args.command == "run":
-            report = run(args.grid, args.name, args.shard, args.runs_dir, args.force, args.log_output, args.kernel)
+            engine = {k: getattr(args, k) for k in ("scheduler", "workers", "gpus", "shards", "retries",
+                                                    "resources", "dashboard")}
+            report = run(args.grid, args.name, args.shard, args.runs_dir, args.force, args.log_output, args.kernel,
+                         args.executor, engine)
         else:
             report = merge(args.grid, args.name, args.runs_dir)
-    except (FileNotFoundError, ValueError) as exc:
+    except (FileNotFoundError, ValueError, cluster.EngineError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # a read-only or full disk, a file where a folder should be
