@@ -2,6 +2,7 @@
 
 >>> backend = get_backend("stub", cfg)            # synthetic scenes, no weights, instant
 >>> backend = get_backend("tiny", cfg)            # real code path, random tiny weights
+>>> backend = get_backend("micro", cfg)           # real code path, weights trained here (CPU)
 >>> backend = get_backend("real", cfg, weights_dir="weights")   # SD v1.5 + ControlNet + ZoeDepth
 
 Every backend has ``diffusion_rgb(image, ids=None)``, ``diffusion_depth(depth, ids=None)``
@@ -25,14 +26,14 @@ from .base import (
     official_resize_hw,
 )
 from .stub import StubBackend
-from .torch_backends import RealBackend, TinyBackend, resolve_device  # torch imported lazily
+from .torch_backends import MicroBackend, RealBackend, TinyBackend, resolve_device  # torch imported lazily
 
-BACKENDS = ("stub", "tiny", "real")
+BACKENDS = ("stub", "tiny", "micro", "real")
 _ALIASES = {"diffusers": "real", "zoedepth": "real"}
 
 
 def get_backend(name: str, cfg=None, device: str | None = None, **kw) -> Backend:
-    """Build a backend by name: ``"stub"``, ``"tiny"`` or ``"real"``.
+    """Build a backend by name: ``"stub"``, ``"tiny"``, ``"micro"`` or ``"real"``.
 
     Args:
         name: the kind (``"diffusers"`` and ``"zoedepth"`` are accepted for ``"real"``).
@@ -40,7 +41,7 @@ def get_backend(name: str, cfg=None, device: str | None = None, **kw) -> Backend
         device: ``None`` (CUDA if present, else CPU), ``"cpu"`` or ``"cuda[:N]"``; the stub
             ignores it.
         **kw: passed to the backend class (:class:`StubBackend`, ``TinyBackend``,
-            ``RealBackend``), e.g. ``noise=`` (stub), ``resize_hw=`` (tiny),
+            ``MicroBackend``, ``RealBackend``), e.g. ``random_weights=`` (micro), ``noise=`` (stub), ``resize_hw=`` (tiny),
             ``weights_dir=`` (real), ``dtype=`` (tiny, real: overrides ``cfg.dtype``, whose
             default is the official float32 on every device).
 
@@ -56,6 +57,8 @@ def get_backend(name: str, cfg=None, device: str | None = None, **kw) -> Backend
         return StubBackend(cfg, **kw)
     if key == "tiny":
         return TinyBackend(cfg, device=device, **kw)
+    if key == "micro":
+        return MicroBackend(cfg, device=device, **kw)
     if key == "real":
         return RealBackend(cfg, device=device, **kw)
     raise ValueError(f"unknown backend {name!r}; expected one of {BACKENDS}")
@@ -67,6 +70,7 @@ __all__ = [
     "LAYER_STRIDES",
     "MissingWeightsError",
     "N_LAYERS",
+    "MicroBackend",
     "RealBackend",
     "SD15_LAYER_CHANNELS",
     "StubBackend",

@@ -14,6 +14,7 @@ without CUDA raises a ``RuntimeError``.
 """
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -245,3 +246,85 @@ class RealBackend(_TorchBackend):
                 raise
             raise W.missing_weights_error([(self.zoe_id, [path])], self.weights_dir,
                                           reason=f"{type(e).__name__}: {e}") from e
+
+
+class MicroBackend(_TorchBackend):
+    """The micro models (:mod:`freereg_lib.micro`): SD-layout diffusion models trained here on
+    the synthetic rooms, run by the same feature code as the ``real`` backend.
+
+    The weights are committed in the package (``freereg_lib/micro/weights``; model card
+    beside them). The VAE halves the 128 x 192 input twice, so the nine decoder layers are
+    4 x 6, 8 x 12 and 16 x 24 (strides 32, 16, 8 instead of SD's 64, 32, 16). Monocular depth
+    is the stub's (the true depth with its designed error) until a micro depth model exists:
+    it needs ``depth_gt``, so this backend runs on synthetic pairs.
+
+    Args:
+        cfg: the config (indoor: the micro models were trained on rooms only).
+        device, dtype: see :func:`resolve_device`.
+        weights_dir: another folder of micro weights (default: ``$FREEREG_MICRO_WEIGHTS``, else
+            the committed ones), e.g. the ``--export`` folder of a retraining.
+        random_weights: the same architecture with seeded random weights instead (zero
+            convolutions drawn small, as the tiny backend's, so the hint still acts): the
+            baseline that shows what the training contributes.
+        seed: the random weights' seed (default ``cfg.seed``).
+    """
+
+    name = "micro"
+    strides = (32, 32, 32, 16, 16, 16, 8, 8, 8)
+
+    def __init__(self, cfg, device=None, dtype=None, weights_dir=None, random_weights: bool = False,
+                 seed: int | None = None):
+        from ..micro import models as M
+
+        if getattr(cfg, "outdoor", False):
+            raise ValueError("the micro models were trained on the synthetic indoor world only; "
+                             "use backend='stub' (or 'real' with weights) for outdoor scenes")
+        super().__init__(cfg, device, dtype, M.MICRO_RESIZE_HW)
+        weights_dir = weights_dir or os.environ.get("FREEREG_MICRO_WEIGHTS") or None
+        self.weights_dir = Path(weights_dir) if weights_dir else M.WEIGHTS_DIR
+        self.random_weights = bool(random_weights)
+        self.seed = cfg.seed if seed is None else int(seed)
+        if not self.random_weights and M.missing_parts(self.weights_dir):
+            raise MissingWeightsError(
+                f"micro weights missing in {self.weights_dir}: {', '.join(M.missing_parts(self.weights_dir))}; "
+                "retrain them with `python -m freereg_lib.micro.train_diffusion --export "
+                f"{self.weights_dir}`")
+        self._stub = None
+        kind = "random weights, same architecture" if self.random_weights else "trained on synthetic rooms"
+        self.label = (f"micro backend (SD-layout diffusion models, {kind}; "
+                      "monocular depth: the stub's designed error)")
+
+    def layer_shapes(self) -> list[tuple[int, int]]:
+        h, w = self.resize_hw
+        return [(h // s, w // s) for s in self.strides]
+
+    def _build_diffusion(self):
+        import torch
+
+        from ..micro import models as M
+        from .diffusion import DiffusionFeatures
+
+        if self.random_weights:
+            mods = M.build(self.seed)
+            with torch.no_grad():
+                cn = mods["controlnet"]
+                for m in [*cn.controlnet_down_blocks, cn.controlnet_mid_block,
+                          cn.controlnet_cond_embedding.conv_out]:
+                    m.weight.normal_(0.0, 0.02)
+        else:
+            mods = M.load(self.weights_dir, device="cpu")
+        nets = [torch.nn.Module.to(mods[k], device=self.device, dtype=self.dtype).eval()
+                for k in ("unet", "controlnet", "vae", "text_encoder")]
+        return DiffusionFeatures(*nets[:3], nets[3], mods["tokenizer"], self.cfg, self.device,
+                                 self.dtype, self.resize_hw)
+
+    def mono_depth(self, image: np.ndarray, depth_gt: np.ndarray | None = None) -> np.ndarray:
+        if self._stub is None:
+            from .stub import StubBackend
+
+            self._stub = StubBackend(self.cfg)
+        return self._stub.mono_depth(image, depth_gt)
+
+    def mono_depth_batch(self, images, depth_gts=None) -> list[np.ndarray]:
+        gts = depth_gts if depth_gts is not None else [None] * len(images)
+        return [self.mono_depth(im, gt) for im, gt in zip(images, gts)]

@@ -1,0 +1,110 @@
+"""Held-out quality of the micro diffusion models: trained weights against random ones.
+
+    python -m freereg_lib.micro.evaluate [--pairs 30] [--seed 2026] [--weights DIR]
+        [--guidance-w 4.0] [--t-hat 150] [--out eval.json]
+
+Runs FreeReg-D (decoder layers 0, 4, 6; PnP-RANSAC) through :func:`freereg_lib.pipeline.run_pairs`
+on synthetic indoor pairs made from integer seeds, which the training rooms (a two-word seed
+sequence, :mod:`.views`) never use, once with the ``micro`` backend's trained weights and
+once with the same architecture's random weights. Prints IR, FMR and RR with 95 % bootstrap
+intervals over pairs, the ratio of the mean IRs and a paired sign-flip permutation test.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+VARIANT = ("FreeReg-D", "pnp")
+
+
+def bootstrap_ci(values, stat=np.mean, n: int = 2000, seed: int = 0) -> tuple[float, float]:
+    """95 % percentile bootstrap interval of ``stat`` over ``values`` (pairs resampled)."""
+    v = np.asarray(values, dtype=np.float64)
+    if len(v) == 0:
+        return math.nan, math.nan
+    rng = np.random.default_rng(seed)
+    stats = [stat(v[rng.integers(0, len(v), len(v))]) for _ in range(n)]
+    return float(np.percentile(stats, 2.5)), float(np.percentile(stats, 97.5))
+
+
+def paired_permutation_p(a, b, n: int = 20000, seed: int = 0) -> float:
+    """Two-sided p-value of mean(a - b) = 0 under random sign flips of the paired differences."""
+    d = np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64)
+    if not np.any(d):
+        return 1.0
+    rng = np.random.default_rng(seed)
+    signs = rng.choice([-1.0, 1.0], size=(n, len(d)))
+    null = np.abs((signs * d).mean(axis=1))
+    return float((np.sum(null >= abs(d.mean()) - 1e-15) + 1) / (n + 1))
+
+
+def summarize(rows: list[dict], cfg) -> dict:
+    """IR / FMR / RR (%) with bootstrap intervals, from per-pair rows."""
+    ir = np.array([r["IR"] for r in rows])
+    fm = (ir > cfg.fmr_ratio).astype(float)
+    rr = np.array([bool(r["registered"]) for r in rows], dtype=float)
+    out = {"n_pairs": len(rows), "IR_per_pair": ir.tolist()}
+    for key, v in (("IR", ir), ("FMR", fm), ("RR", rr)):
+        lo, hi = bootstrap_ci(v)
+        out[key] = 100 * float(v.mean())
+        out[key + "_ci"] = [100 * lo, 100 * hi]
+    return out
+
+
+def evaluate(n_pairs: int = 30, seed: int = 2026, weights_dir=None, progress: bool = True, **changes) -> dict:
+    """The trained-vs-random comparison on ``n_pairs`` held-out pairs; ``changes`` override the
+    config (e.g. ``guidance_w``, ``t_hat``)."""
+    from .. import pipeline, sources
+    from ..backends import get_backend
+    from ..config import FreeRegConfig
+
+    cfg = FreeRegConfig().override(**changes) if changes else FreeRegConfig()
+    pairs = list(sources.iter_pairs("synthetic_indoor", n_pairs, seed=seed))
+    result = {"seed": seed, "config_changes": changes}
+    for name, kw in (("trained", {"weights_dir": weights_dir}), ("random", {"random_weights": True})):
+        backend = get_backend("micro", cfg, device="cpu", **kw)
+        rows = pipeline.run_pairs(pairs, backend, cfg, [VARIANT], progress=progress)
+        result[name] = summarize(rows, cfg)
+    a, b = result["trained"]["IR_per_pair"], result["random"]["IR_per_pair"]
+    result["IR_ratio"] = result["trained"]["IR"] / max(result["random"]["IR"], 1e-9)
+    result["p_value"] = paired_permutation_p(a, b)
+    return result
+
+
+def report(result: dict) -> str:
+    lines = [f"FreeReg-D (layers 0, 4, 6; PnP) on {result['trained']['n_pairs']} held-out synthetic indoor "
+             f"pairs (seed {result['seed']}; {result['config_changes'] or 'default config'}):"]
+    for name in ("trained", "random"):
+        r = result[name]
+        lines.append(f"  {name:8s} IR {r['IR']:5.1f} % [{r['IR_ci'][0]:.1f}, {r['IR_ci'][1]:.1f}]   "
+                     f"FMR {r['FMR']:5.1f} % [{r['FMR_ci'][0]:.1f}, {r['FMR_ci'][1]:.1f}]   "
+                     f"RR {r['RR']:5.1f} % [{r['RR_ci'][0]:.1f}, {r['RR_ci'][1]:.1f}]")
+    lines.append(f"  trained / random IR = {result['IR_ratio']:.2f}x (paired permutation p = {result['p_value']:.4f}); "
+                 "the paper's FreeReg-D on 3DMatch: IR 39.6 %, FMR 91.9 %")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--pairs", type=int, default=30)
+    p.add_argument("--seed", type=int, default=2026)
+    p.add_argument("--weights", default=None, help="micro weights folder (default: the committed ones)")
+    p.add_argument("--guidance-w", type=float, default=None)
+    p.add_argument("--t-hat", type=int, default=None)
+    p.add_argument("--out", default=None, help="write the result as JSON here")
+    args = p.parse_args(argv)
+    changes = {k: v for k, v in (("guidance_w", args.guidance_w), ("t_hat", args.t_hat)) if v is not None}
+    result = evaluate(args.pairs, args.seed, args.weights, **changes)
+    print(report(result))
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

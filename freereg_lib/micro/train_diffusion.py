@@ -1,0 +1,394 @@
+"""Train the micro diffusion models from scratch: VAE, then UNet, then depth ControlNet.
+
+    python -m freereg_lib.micro.train_diffusion [--out runs/micro/train] [--scenes 500]
+        [--steps-vae 700] [--steps-unet 1600] [--steps-controlnet 1000] [--batch 16]
+        [--export freereg_lib/micro/weights]
+
+The stages follow Stable Diffusion's recipe in miniature:
+
+* ``vae``: an ``AutoencoderKL`` trained on random half-size crops, reconstruction (L1) plus
+  the KL term with SD's weight (1e-6 per summed pixel); its ``scaling_factor`` is then set to 1 / std of the
+  training latents, as SD's 0.18215 was;
+* ``unet``: epsilon prediction under SD v1.5's noise schedule (1000 steps, scaled-linear betas
+  0.00085..0.012), timesteps uniform, the text (the world's prompt + ", best quality", the
+  pipeline's conditional text) replaced by the pipeline's unconditional text 10 % of the time
+  so that classifier-free guidance has something to extrapolate from;
+* ``controlnet``: ``ControlNetModel.from_unet`` (the UNet's encoder, zero convolutions at
+  zero), trained with the UNet frozen on (hint, image) pairs whose hint is made as the
+  pipeline makes it at inference (:mod:`.views`).
+
+Every stage is seeded (a step's batch, flips, noise and timesteps depend only on the seed and
+the step number), checkpoints every ``--checkpoint-every`` steps and resumes from its last
+checkpoint when run again; a finished stage is skipped. ``--export`` writes the weights and
+``training.json`` (arguments, steps, times, loss curves) for the model card.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from . import models as M
+from .views import load_or_render
+
+STAGES = ("vae", "unet", "controlnet")
+KL_WEIGHT = 1e-6  # SD's autoencoder (kl-f8): the KL weight against a per-image summed NLL
+TEXT_DROP = 0.1
+VAL_SCENES = 20  # the last rooms' views are held out for the validation losses
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--out", default="runs/micro/train", help="checkpoints and logs")
+    p.add_argument("--views", default=None, help="the rendered views (.npz); default OUT/../views_indoor.npz")
+    p.add_argument("--scenes", type=int, default=500, help="training rooms")
+    p.add_argument("--views-per-scene", type=int, default=4)
+    p.add_argument("--stages", nargs="+", default=list(STAGES), choices=STAGES)
+    p.add_argument("--steps-vae", type=int, default=700)
+    p.add_argument("--steps-unet", type=int, default=1600)
+    p.add_argument("--steps-controlnet", type=int, default=1000)
+    p.add_argument("--batch", type=int, default=16)
+    p.add_argument("--lr-vae", type=float, default=1e-3)
+    p.add_argument("--lr-unet", type=float, default=5e-4)
+    p.add_argument("--lr-controlnet", type=float, default=5e-4)
+    p.add_argument("--warmup", type=int, default=100, help="linear learning-rate warm-up steps")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--checkpoint-every", type=int, default=100)
+    p.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
+    p.add_argument("--export", default=None, help="write the trained weights to this folder")
+    return p.parse_args(argv)
+
+
+# ------------------------------------------------------------------------------- data
+
+class Data:
+    """The views as tensors: images in [-1, 1], hints in [0, 1]; train / validation split by room."""
+
+    def __init__(self, views: dict, views_per_scene: int):
+        import torch
+
+        n_val = min(VAL_SCENES * views_per_scene, len(views["rgb"]) // 5)
+        self.rgb = torch.from_numpy(views["rgb"]).float() / 127.5 - 1.0
+        self.hint = torch.from_numpy(views["hint"]).float() / 255.0
+        self.n_train = len(self.rgb) - n_val
+        self.val = np.arange(self.n_train, len(self.rgb))
+
+    def batch_index(self, rng: np.random.Generator, size: int) -> tuple[np.ndarray, np.ndarray]:
+        """Training indices and horizontal flips for one step."""
+        return rng.integers(0, self.n_train, size), rng.random(size) < 0.5
+
+
+def _flip(x, flips):
+    import torch
+
+    x = x.clone()
+    if flips.any():
+        f = torch.from_numpy(flips)
+        x[f] = torch.flip(x[f], dims=[-1])
+    return x
+
+
+# ------------------------------------------------------------------------- stage loop
+
+def step_rng(seed: int, stage: str, step: int) -> tuple[np.random.Generator, "object"]:
+    """The numpy and torch generators of one step: a function of (seed, stage, step) only,
+    so a resumed run draws what an uninterrupted one draws."""
+    import torch
+
+    ss = np.random.SeedSequence([seed, STAGES.index(stage), step])
+    g = torch.Generator().manual_seed(int(ss.generate_state(1, dtype=np.uint64)[0] >> 1))
+    return np.random.default_rng(ss), g
+
+
+def run_stage(stage: str, trainable, loss_fn, val_fn, steps: int, lr: float, args, out: Path) -> dict:
+    """Seeded, resumable training of ``trainable`` (an ``nn.Module``) for ``steps`` steps.
+
+    ``loss_fn(rng, g)`` returns the training loss of one step; ``val_fn()`` the validation
+    loss. Returns the stage's log: losses per step, validation losses, seconds.
+    """
+    import torch
+
+    folder = out / stage
+    folder.mkdir(parents=True, exist_ok=True)
+    ckpt = folder / "checkpoint.pt"
+    opt = torch.optim.AdamW([p for p in trainable.parameters() if p.requires_grad], lr=lr,
+                            weight_decay=1e-2)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: min(1.0, (s + 1) / max(args.warmup, 1)))
+    log = {"loss": [], "val": [], "seconds": 0.0, "steps": steps}
+    start = 0
+    if ckpt.exists():
+        state = torch.load(ckpt, map_location="cpu", weights_only=False)
+        trainable.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        sched.load_state_dict(state["scheduler"])
+        log, start = state["log"], state["step"]
+        log["steps"] = steps
+    if start >= steps:
+        return log
+
+    def save_checkpoint(step):
+        tmp = ckpt.with_suffix(".tmp")
+        torch.save({"model": trainable.state_dict(), "optimizer": opt.state_dict(),
+                    "scheduler": sched.state_dict(), "log": log, "step": step}, tmp)
+        os.replace(tmp, ckpt)
+
+    trainable.train()
+    bar = tqdm(range(start, steps), desc=f"{stage}", initial=start, total=steps, unit="step")
+    t0 = time.perf_counter()
+    for step in bar:
+        rng, g = step_rng(args.seed, stage, step)
+        loss = loss_fn(rng, g)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(trainable.parameters(), 1.0)
+        opt.step()
+        sched.step()
+        log["loss"].append(float(loss))
+        bar.set_postfix(loss=f"{np.mean(log['loss'][-50:]):.4f}")
+        done = step + 1
+        if done % args.checkpoint_every == 0 or done == steps:
+            trainable.eval()
+            with torch.no_grad():
+                log["val"].append([done, float(val_fn())])
+            trainable.train()
+            log["seconds"] += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            save_checkpoint(done)
+    trainable.eval()
+    return log
+
+
+# ----------------------------------------------------------------------------- stages
+
+def noise_schedule():
+    """SD v1.5's training schedule (the DDIM sampler at inference uses the same betas)."""
+    from diffusers import DDPMScheduler
+
+    return DDPMScheduler(num_train_timesteps=1000, beta_start=0.00085, beta_end=0.012,
+                         beta_schedule="scaled_linear", prediction_type="epsilon", clip_sample=False)
+
+
+def train_vae(models, data: Data, args, out: Path) -> dict:
+    import torch
+
+    vae = models["vae"]
+    n_pix = float(np.prod(data.rgb.shape[1:]))
+
+    def loss_of(x, g):
+        post = vae.encode(x).latent_dist
+        z = post.mean + post.std * torch.randn(post.mean.shape, generator=g)
+        rec = vae.decode(z).sample
+        return (rec - x).abs().mean() + KL_WEIGHT / n_pix * post.kl().mean()
+
+    def loss_fn(rng, g):
+        # Random half-size crops, as SD's autoencoder was trained on crops: the model is
+        # convolutional, and a quarter of the pixels is a quarter of the step time.
+        idx, flips = data.batch_index(rng, args.batch)
+        H, W = data.rgb.shape[2:]
+        y, x = int(rng.integers(0, H // 2 + 1)), int(rng.integers(0, W // 2 + 1))
+        return loss_of(_flip(data.rgb[idx], flips)[:, :, y:y + H // 2, x:x + W // 2], g)
+
+    def val_fn():
+        g = torch.Generator().manual_seed(args.seed)
+        return np.mean([float(loss_of(data.rgb[i:i + 16], g)) for i in data.val[::16]])
+
+    log = run_stage("vae", vae, loss_fn, val_fn, args.steps_vae, args.lr_vae, args, out)
+    return log
+
+
+def encode_latents(vae, rgb, batch: int = 32):
+    """Posterior mean and std of every image and of its mirror image: ``(2, N, 4, h, w)`` each
+    (index 0 plain, 1 flipped)."""
+    import torch
+
+    means, stds = [], []
+    with torch.no_grad():
+        for flip in (False, True):
+            m, s = [], []
+            for i in tqdm(range(0, len(rgb), batch), desc="encoding latents" + (" (mirrored)" if flip else ""),
+                          leave=False):
+                x = rgb[i:i + batch]
+                post = vae.encode(torch.flip(x, dims=[-1]) if flip else x).latent_dist
+                m.append(post.mean)
+                s.append(post.std)
+            means.append(torch.cat(m))
+            stds.append(torch.cat(s))
+    return torch.stack(means), torch.stack(stds)
+
+
+def set_scaling_factor(vae, mean, std) -> float:
+    """SD's rule: 1 / the standard deviation of the (sampled) training latents."""
+    import torch
+
+    g = torch.Generator().manual_seed(0)
+    z = mean[0] + std[0] * torch.randn(mean[0].shape, generator=g)
+    factor = float(1.0 / z.std())
+    vae.register_to_config(scaling_factor=factor)
+    return factor
+
+
+class Denoising:
+    """One epsilon-prediction loss for the UNet and ControlNet stages."""
+
+    def __init__(self, models, data: Data, latents, args):
+        import torch
+
+        from ..backends.base import A_PROMPT
+        from ..config import FreeRegConfig
+
+        cfg = FreeRegConfig()
+        self.unet, self.controlnet = models["unet"], models["controlnet"]
+        self.data, self.args = data, args
+        self.mean, self.std = latents
+        self.factor = models["vae"].config.scaling_factor
+        self.sched = noise_schedule()
+        tok, text = models["tokenizer"], models["text_encoder"]
+
+        def embed(t):
+            ids = tok([t], padding="max_length", max_length=tok.model_max_length, truncation=True,
+                      return_tensors="pt").input_ids
+            with torch.no_grad():
+                return text(ids)[0]
+
+        self.cond = embed(f"{cfg.prompt}, {A_PROMPT}")
+        self.uncond = embed(cfg.negative_prompt)
+
+    def loss(self, idx, flips, g, with_controlnet: bool, drop):
+        import torch
+
+        f = torch.from_numpy(flips.astype(np.int64))
+        i = torch.from_numpy(idx)
+        mean, std = self.mean[f, i], self.std[f, i]
+        z = (mean + std * torch.randn(mean.shape, generator=g)) * self.factor
+        noise = torch.randn(z.shape, generator=g)
+        t = torch.randint(0, self.sched.config.num_train_timesteps, (len(idx),), generator=g)
+        zt = self.sched.add_noise(z, noise, t)
+        emb = torch.where(torch.from_numpy(drop)[:, None, None], self.uncond, self.cond)
+        kw = {}
+        if with_controlnet:
+            hint = _flip(self.data.hint[idx], flips)
+            down, mid = self.controlnet(zt, t, encoder_hidden_states=emb, controlnet_cond=hint,
+                                        return_dict=False)
+            kw = dict(down_block_additional_residuals=down, mid_block_additional_residual=mid)
+        pred = self.unet(zt, t, encoder_hidden_states=emb, **kw).sample
+        return torch.nn.functional.mse_loss(pred, noise)
+
+    def train_loss(self, rng, g, with_controlnet):
+        idx, flips = self.data.batch_index(rng, self.args.batch)
+        drop = rng.random(len(idx)) < TEXT_DROP
+        return self.loss(idx, flips, g, with_controlnet, drop)
+
+    def val_loss(self, with_controlnet):
+        import torch
+
+        g = torch.Generator().manual_seed(self.args.seed)
+        idx = self.data.val
+        no = np.zeros(len(idx), dtype=bool)
+        return np.mean([float(self.loss(idx[k:k + 16], no[k:k + 16], g, with_controlnet, no[k:k + 16]))
+                        for k in range(0, len(idx), 16)])
+
+
+def freeze(module):
+    for p in module.parameters():
+        p.requires_grad_(False)
+    return module.eval()
+
+
+def load_stage_weights(stage: str, module, out: Path) -> None:
+    import torch
+
+    state = torch.load(out / stage / "checkpoint.pt", map_location="cpu", weights_only=False)
+    module.load_state_dict(state["model"])
+
+
+def export(models, logs: dict, args, out_dir: Path, seconds: float) -> None:
+    """Weights (float16 safetensors folders) and ``training.json`` for the model card."""
+    M.save(models, out_dir)
+    facts = {
+        "arguments": {k: v for k, v in vars(args).items() if k not in ("out", "views", "export", "threads")},
+        "train_stream": "numpy.random.default_rng((0xF3EE0001, room)) for rooms 0..scenes-1",
+        "validation_rooms": VAL_SCENES,
+        "scaling_factor": models["vae"].config.scaling_factor,
+        "parameters_millions": {k: round(sum(p.numel() for p in models[k].parameters()) / 1e6, 3)
+                                for k in ("vae", "unet", "controlnet", "text_encoder")},
+        "total_seconds": round(seconds, 1),
+        "stages": {k: {"steps": v["steps"], "seconds": round(v["seconds"], 1), "loss": v["loss"], "val": v["val"]}
+                   for k, v in logs.items()},
+    }
+    (out_dir / "training.json").write_text(json.dumps(facts) + "\n")
+
+
+def main(argv=None) -> int:
+    import torch
+
+    args = parse_args(argv)
+    torch.set_num_threads(args.threads or os.cpu_count() or 1)
+    t_start = time.perf_counter()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    views = load_or_render(args.views or out.parent / "views_indoor.npz", args.scenes, args.views_per_scene)
+    data = Data(views, args.views_per_scene)
+    print(f"{len(data.rgb)} views ({data.n_train} training, {len(data.val)} validation) of "
+          f"{args.scenes} rooms, {tuple(data.rgb.shape[2:])} pixels", flush=True)
+    models = M.build(args.seed)
+    freeze(models["text_encoder"])
+    logs = {}
+    # Earlier stages than the last one asked for are loaded from their checkpoints.
+    last = max(STAGES.index(s) for s in args.stages)
+
+    if "vae" in args.stages:
+        logs["vae"] = train_vae(models, data, args, out)
+    else:
+        load_stage_weights("vae", models["vae"], out)
+    freeze(models["vae"])
+    if last == 0:
+        return _finish(models, logs, args, t_start)
+    latents = encode_latents(models["vae"], data.rgb)
+    factor = set_scaling_factor(models["vae"], *latents)
+    print(f"VAE scaling factor {factor:.4f} (SD v1.5: 0.18215)", flush=True)
+
+    den = Denoising(models, data, latents, args)
+    if "unet" in args.stages:
+        logs["unet"] = run_stage("unet", models["unet"], lambda r, g: den.train_loss(r, g, False),
+                                 lambda: den.val_loss(False), args.steps_unet, args.lr_unet, args, out)
+    else:
+        load_stage_weights("unet", models["unet"], out)
+    freeze(models["unet"])
+    if last == 1:
+        return _finish(models, logs, args, t_start)
+
+    if "controlnet" in args.stages:
+        # Built from the trained UNet's encoder, as ControlNet is from SD's.
+        from diffusers import ControlNetModel
+
+        models["controlnet"] = ControlNetModel.from_unet(
+            models["unet"], conditioning_embedding_out_channels=M.CONTROLNET_EMBEDDING)
+        den.controlnet = models["controlnet"]
+        logs["controlnet"] = run_stage("controlnet", models["controlnet"], lambda r, g: den.train_loss(r, g, True),
+                                       lambda: den.val_loss(True), args.steps_controlnet, args.lr_controlnet,
+                                       args, out)
+    else:
+        load_stage_weights("controlnet", models["controlnet"], out)
+    freeze(models["controlnet"])
+    return _finish(models, logs, args, t_start)
+
+
+def _finish(models, logs, args, t_start) -> int:
+    seconds = time.perf_counter() - t_start
+    if args.export:
+        if set(logs) != set(STAGES):
+            raise SystemExit("--export needs all three stages in one run (finished ones are read from their "
+                             "checkpoints): drop --stages")
+        export(models, logs, args, Path(args.export), seconds)
+        print(f"weights written to {args.export}", flush=True)
+    print(f"total time {seconds / 60:.1f} min", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,111 @@
+"""Training views for the micro models, rendered from the synthetic world.
+
+Scenes are drawn from ``numpy.random.default_rng((TRAIN_STREAM, k))``: a seed sequence of two
+words, which no integer seed of :func:`freereg_lib.synthetic.make_pair` can reproduce, so no
+evaluation pair shares a room with the training data.
+
+Each view is a camera of a training room rendered at the synthetic pairs' size (480 x 640),
+then reduced to what the models see, exactly as the pipeline makes it at inference:
+
+* ``rgb``: the image resized to the diffusion input by the official rule
+  (:func:`~freereg_lib.backends.base.rgb_to_unit`'s resize), ``(3, h, w) uint8``;
+* ``hint``: the ControlNet hint of the same camera made as at inference: the camera's depth
+  back-projected, subsampled to the synthetic cloud size, projected back on the camera,
+  densified per ``cfg.densify`` (:func:`freereg_lib.pipeline.depth_view`), normalised by the
+  official rule and resized (:func:`~freereg_lib.backends.base.depth_hint`), ``(3, h, w) uint8``;
+* ``depth``: the true depth at ``depth_hw`` (nearest), ``(h_d, w_d) float32`` metres, for the
+  depth model.
+"""
+from __future__ import annotations
+
+import os
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+TRAIN_STREAM = 0xF3EE_0001
+RENDER_HW = (480, 640)
+DIFFUSION_HW = (128, 192)
+DEPTH_HW = (120, 160)
+
+
+def _scene_views(args) -> dict[str, np.ndarray]:
+    """All views of training room ``k`` (run in a worker process)."""
+    k, views_per_scene, kind = args
+    import cv2
+
+    from .. import synthetic as S
+    from ..backends.base import depth_hint, resize_to
+    from ..cameras import backproject, intrinsics, invert, transform
+    from ..config import FreeRegConfig
+    from ..pair import Pair
+    from ..pipeline import depth_view
+
+    if kind != "indoor":
+        raise ValueError(f"training views exist for the indoor world only, got kind={kind!r}")
+    cfg = FreeRegConfig()
+    rng = np.random.default_rng((TRAIN_STREAM, int(k)))
+    scene, room = S._indoor_scene(rng)
+    H, W = RENDER_HW
+    f = 525.0 * W / 640
+    K = intrinsics(f, f, (W - 1) / 2, (H - 1) / 2)
+    out = {"rgb": [], "hint": [], "depth": []}
+    for _ in range(views_per_scene):
+        T_world_cam = S._indoor_camera(rng, room)
+        hits, depth, _ids = scene.camera_view(T_world_cam, K, RENDER_HW)
+        image = scene.shade(hits, RENDER_HW)
+        pts = transform(T_world_cam, backproject(depth, K)[0])
+        pts = pts[S._subsample(rng, len(pts))]
+        pair = Pair(image=image, K_image=K, points=pts, K_depth=K.copy(), depth_size=RENDER_HW,
+                    T_pc_sensor=T_world_cam, T_cam_pc=invert(T_world_cam), name=f"train/{k}")
+        dense = depth_view(pair, cfg).dense
+        out["rgb"].append(resize_to(image, DIFFUSION_HW).transpose(2, 0, 1))
+        out["hint"].append(np.rint(depth_hint(dense, DIFFUSION_HW) * 255).astype(np.uint8))
+        out["depth"].append(cv2.resize(depth.astype(np.float32), DEPTH_HW[::-1],
+                                       interpolation=cv2.INTER_NEAREST))
+    return {key: np.stack(v) for key, v in out.items()}
+
+
+def render_views(n_scenes: int, views_per_scene: int = 4, first_scene: int = 0,
+                 kind: str = "indoor", workers: int | None = None,
+                 progress: bool = True) -> dict[str, np.ndarray]:
+    """Views of training rooms ``first_scene .. first_scene + n_scenes - 1``.
+
+    Returns ``rgb (N, 3, 128, 192) uint8``, ``hint (N, 3, 128, 192) uint8``,
+    ``depth (N, 120, 160) float32`` with ``N = n_scenes * views_per_scene``, in scene order
+    (the same arguments give identical arrays whatever ``workers`` is).
+    """
+    jobs = [(k, views_per_scene, kind) for k in range(first_scene, first_scene + n_scenes)]
+    workers = workers or min(len(jobs), os.cpu_count() or 1)
+    parts = []
+    bar = tqdm(total=len(jobs), desc="rendering training rooms", unit="room", disable=not progress)
+    if workers <= 1:
+        for job in jobs:
+            parts.append(_scene_views(job))
+            bar.update()
+    else:
+        with ProcessPoolExecutor(workers) as pool:
+            for part in pool.map(_scene_views, jobs, chunksize=4):
+                parts.append(part)
+                bar.update()
+    bar.close()
+    return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+
+
+def load_or_render(path: str | Path, n_scenes: int, views_per_scene: int = 4,
+                   progress: bool = True) -> dict[str, np.ndarray]:
+    """The views cached in ``path`` (``.npz``), rendered and saved first when absent or made
+    with other counts."""
+    path = Path(path)
+    if path.exists():
+        with np.load(path) as z:
+            if int(z["n_scenes"]) == n_scenes and int(z["views_per_scene"]) == views_per_scene:
+                return {k: z[k] for k in ("rgb", "hint", "depth")}
+    views = render_views(n_scenes, views_per_scene, progress=progress)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, n_scenes=n_scenes, views_per_scene=views_per_scene, **views)
+    os.replace(tmp, path)
+    return views
