@@ -12,8 +12,11 @@ RUN ?= runs/reproduce
 reproduce: .venv/.installed
 	$(PY) -m freereg_lib.reproduce --out $(RUN)
 
+# Two pytest workers (pytest-xdist), a test file or notebook each at a time: many tests wait on
+# kernels and subprocesses, so two keep both cores busy. nbmake's 300 s cell limit is for one
+# notebook alone; with another test beside it notebook 04's benchmark cell needs more.
 test: .venv/.installed
-	$(PY) -m pytest -q --nbmake tests notebooks
+	$(PY) -m pytest -q -n 2 --dist loadfile --nbmake --nbmake-timeout=900 --durations=15 tests notebooks
 
 clean-venv:
 	rm -rf .venv
