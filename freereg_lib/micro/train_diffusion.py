@@ -1,7 +1,7 @@
 """Train the micro diffusion models from scratch: VAE, then UNet, then depth ControlNet.
 
     python -m freereg_lib.micro.train_diffusion [--out runs/micro/train] [--scenes 500]
-        [--steps-vae 700] [--steps-unet 1600] [--steps-controlnet 1000] [--batch 16]
+        [--steps-vae 700] [--steps-unet 1000] [--steps-controlnet 600] [--batch 16]
         [--export freereg_lib/micro/weights]
 
 The stages follow Stable Diffusion's recipe in miniature:
@@ -50,8 +50,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--views-per-scene", type=int, default=4)
     p.add_argument("--stages", nargs="+", default=list(STAGES), choices=STAGES)
     p.add_argument("--steps-vae", type=int, default=700)
-    p.add_argument("--steps-unet", type=int, default=1600)
-    p.add_argument("--steps-controlnet", type=int, default=1000)
+    p.add_argument("--steps-unet", type=int, default=1000)
+    p.add_argument("--steps-controlnet", type=int, default=600)
     p.add_argument("--batch", type=int, default=16)
     p.add_argument("--lr-vae", type=float, default=1e-3)
     p.add_argument("--lr-unet", type=float, default=5e-4)
@@ -316,7 +316,10 @@ def export(models, logs: dict, args, out_dir: Path, seconds: float) -> None:
         "scaling_factor": models["vae"].config.scaling_factor,
         "parameters_millions": {k: round(sum(p.numel() for p in models[k].parameters()) / 1e6, 3)
                                 for k in ("vae", "unet", "controlnet", "text_encoder")},
-        "total_seconds": round(seconds, 1),
+        # Stage seconds add up over resumed runs; the last run's wall time includes loading
+        # the views and encoding the latents.
+        "step_seconds": round(sum(v["seconds"] for v in logs.values()), 1),
+        "last_run_seconds": round(seconds, 1),
         "stages": {k: {"steps": v["steps"], "seconds": round(v["seconds"], 1), "loss": v["loss"], "val": v["val"]}
                    for k, v in logs.items()},
     }
