@@ -1,0 +1,135 @@
+"""The micro models: training steps lower the loss, training resumes exactly, the backend
+loads the committed weights and runs the real feature code."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from freereg_lib.micro import models as M  # noqa: E402
+from freereg_lib.micro import train_diffusion as T  # noqa: E402
+
+
+def _views(n: int = 8, seed: int = 0, hw=(64, 64)) -> dict:
+    """Smooth, structured stand-in views, smaller than the real 128 x 192 ones to keep the test
+    quick (every model is convolutional)."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:hw[0], 0:hw[1]] / 32.0
+    rgb, hint = [], []
+    for _ in range(n):
+        f = rng.uniform(0.5, 2.0, 3)
+        img = np.stack([np.sin(f[c] * xx + c) * np.cos(f[c] * yy) for c in range(3)])
+        rgb.append(((img + 1) * 127.5).astype(np.uint8))
+        hint.append(np.repeat((255 * (yy / yy.max()))[None], 3, 0).astype(np.uint8))
+    return {"rgb": np.stack(rgb), "hint": np.stack(hint), "depth": np.zeros((n, 120, 160), np.float32)}
+
+
+def _fit(module, loss_fn, steps: int, lr: float) -> list[float]:
+    opt = torch.optim.Adam([p for p in module.parameters() if p.requires_grad], lr=lr)
+    losses = []
+    for _ in range(steps):
+        loss = loss_fn()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    return losses
+
+
+def test_each_stage_lowers_its_loss_on_a_fixed_batch():
+    torch.manual_seed(0)
+    models = M.build(seed=0)
+    T.freeze(models["text_encoder"])
+    data = T.Data(_views(), views_per_scene=4)
+    args = T.parse_args(["--batch", "4", "--seed", "0"])
+    idx, flips = np.arange(2), np.zeros(2, dtype=bool)
+    n_pix = float(np.prod(data.rgb.shape[1:]))
+
+    def vae_loss():
+        g = torch.Generator().manual_seed(0)
+        x = data.rgb[idx]
+        post = models["vae"].encode(x).latent_dist
+        z = post.mean + post.std * torch.randn(post.mean.shape, generator=g)
+        return (models["vae"].decode(z).sample - x).abs().mean() + T.KL_WEIGHT / n_pix * post.kl().mean()
+
+    losses = _fit(models["vae"], vae_loss, 6, 3e-3)
+    assert losses[-1] < 0.8 * losses[0], losses
+
+    T.freeze(models["vae"])
+    latents = T.encode_latents(models["vae"], data.rgb)
+    assert latents[0].shape == (2, 8, 4, 16, 16)  # plain and mirrored, a quarter-size latent
+    T.set_scaling_factor(models["vae"], *latents)
+    den = T.Denoising(models, data, latents, args)
+    no_drop = np.zeros(2, dtype=bool)
+    fixed = lambda cn: lambda: den.loss(idx, flips, torch.Generator().manual_seed(1), cn, no_drop)  # noqa: E731
+    losses = _fit(models["unet"], fixed(False), 6, 3e-3)
+    assert losses[-1] < 0.8 * losses[0], losses
+
+    T.freeze(models["unet"])
+    from diffusers import ControlNetModel
+
+    den.controlnet = models["controlnet"] = ControlNetModel.from_unet(
+        models["unet"], conditioning_embedding_out_channels=M.CONTROLNET_EMBEDDING)
+    before = float(fixed(True)())
+    assert before == pytest.approx(float(fixed(False)()), rel=1e-5)  # zero convolutions: no effect yet
+    losses = _fit(models["controlnet"], fixed(True), 6, 3e-3)
+    assert losses[-1] < losses[0], losses
+
+
+def test_a_resumed_stage_ends_where_an_uninterrupted_one_does(tmp_path):
+    views = _views()
+    np.savez(tmp_path / "views.npz", n_scenes=2, views_per_scene=4, **views)
+    common = ["--views", str(tmp_path / "views.npz"), "--scenes", "2", "--views-per-scene", "4",
+              "--stages", "vae", "--batch", "2", "--checkpoint-every", "2", "--threads", "1"]
+    T.main(common + ["--out", str(tmp_path / "a"), "--steps-vae", "4"])
+    T.main(common + ["--out", str(tmp_path / "b"), "--steps-vae", "2"])
+    T.main(common + ["--out", str(tmp_path / "b"), "--steps-vae", "4"])  # resumes at step 2
+    a = torch.load(tmp_path / "a/vae/checkpoint.pt", weights_only=False)
+    b = torch.load(tmp_path / "b/vae/checkpoint.pt", weights_only=False)
+    assert a["step"] == b["step"] == 4
+    assert a["log"]["loss"] == b["log"]["loss"]
+    for k, v in a["model"].items():
+        assert torch.equal(v, b["model"][k]), k
+
+
+def test_export_needs_every_stage(tmp_path):
+    np.savez(tmp_path / "views.npz", n_scenes=2, views_per_scene=4, **_views())
+    with pytest.raises(SystemExit, match="all three stages"):
+        T.main(["--views", str(tmp_path / "views.npz"), "--scenes", "2", "--views-per-scene", "4",
+                "--stages", "vae", "--steps-vae", "1", "--batch", "2", "--out", str(tmp_path / "o"),
+                "--export", str(tmp_path / "w"), "--threads", "1"])
+
+
+# ---------------------------------------------------------------------------- backend
+
+def test_micro_backend_loads_the_committed_weights_and_the_hint_acts():
+    from freereg_lib.backends import get_backend
+    from freereg_lib.config import FreeRegConfig
+
+    assert not M.missing_parts(), "the committed micro weights are incomplete"
+    training = json.loads((M.WEIGHTS_DIR / "training.json").read_text())
+    assert set(training["stages"]) == {"vae", "unet", "controlnet"}
+    cfg = FreeRegConfig().override(ddim_steps=5)  # 4 guided steps: a quick call
+    backend = get_backend("micro", cfg, device="cpu")
+    assert "trained" in backend.label
+    yy = np.mgrid[0:120, 0:160][0]
+    near, far = 1.0 + yy / 60.0, 4.0 - yy / 60.0
+    a, b = (backend.diffusion_depth_batch([d], layers=(0, 4, 6))[0] for d in (near, far))
+    for layer, (h, w) in zip((0, 4, 6), [backend.layer_shapes()[i] for i in (0, 4, 6)]):
+        assert a[layer].shape[1:] == (h, w)
+        assert not np.allclose(a[layer], b[layer])  # another hint, other features
+    rgb = backend.diffusion_rgb_batch([np.full((120, 160, 3), 128, np.uint8)], layers=(6,))[0][6]
+    assert rgb.shape[1:] == (16, 24) and np.isfinite(rgb).all()
+
+
+def test_micro_backend_refuses_missing_weights_and_outdoor(tmp_path):
+    from freereg_lib.backends import MissingWeightsError, get_backend
+    from freereg_lib.config import FreeRegConfig, config_for
+
+    with pytest.raises(MissingWeightsError, match="train_diffusion"):
+        get_backend("micro", FreeRegConfig(), weights_dir=tmp_path)
+    with pytest.raises(ValueError, match="indoor"):
+        get_backend("micro", config_for("kitti"))
