@@ -40,7 +40,8 @@ COMMON_PARAMS = ("backend", "dataset", "n_pairs", "seed", "device", "out_dir", "
 METRIC_COLUMNS = ("FMR", "IR", "IN", "RR")
 
 # Non-default runs (issue 4): another seed and fewer pairs everywhere, the tiny backend for 01,
-# the embedded ICL frames for 02 and 04. ``knobs`` only shorten a run and are passed only when
+# the stub instead of the default micro backend for 03 and 04 (nbmake runs their defaults), the
+# embedded ICL frames for 02 and 04. ``knobs`` only shorten a run and are passed only when
 # the notebook declares them; ``params`` must all be declared.
 RUNS = {
     "00_preliminaries": dict(params={"seed": 1, "n_pairs": 1}, knobs={}),
@@ -53,14 +54,15 @@ RUNS = {
         knobs={"mono_errors": [0.0, 0.27], "sweep_ransac_iters": 2000},
     ),
     "03_fusion": dict(
-        params={"seed": 1, "n_pairs": 2},
+        params={"backend": "stub", "seed": 1, "n_pairs": 2},
         knobs={"weights": [1.0, 0.5, 0.0], "ransac_iters": 5000},
     ),
     # Two pairs in one batch and the USAC PnP, through config_overrides.
-    "04_benchmark": dict(params={"dataset": "icl", "seed": 1, "n_pairs": 2,
+    "04_benchmark": dict(params={"backend": "stub", "dataset": "icl", "seed": 1, "n_pairs": 2,
                                  "config_overrides": {"pair_batch": 2, "pnp_method": "usac"}},
                          knobs={"ransac_iters": 5000}),
-    # The outdoor scenes, compared with KITTI-DC, through the feature cache.
+    # The outdoor scenes, compared with KITTI-DC, through the feature cache (the default micro
+    # backend falls back to the stub outdoors).
     "04_benchmark-outdoor-cached": dict(
         params={"dataset": "synthetic_outdoor", "seed": 2, "n_pairs": 1, "cache_dir": "<tmp>/cache"},
         knobs={"ransac_iters": 5000, "n_failure_cases": 1},
@@ -68,7 +70,7 @@ RUNS = {
     # The official demo's layout (written by the test: a rendered room, its own cameras), as
     # dataset="demo": config_for("demo") and the loader through the notebook (issue 13).
     "04_benchmark-demo": dict(
-        params={"dataset": "demo", "data_root": "<tmp>/demo", "seed": 1, "n_pairs": 1},
+        params={"backend": "stub", "dataset": "demo", "data_root": "<tmp>/demo", "seed": 1, "n_pairs": 1},
         knobs={"ransac_iters": 5000, "n_failure_cases": 1}, setup="demo",
     ),
     # One's own data (issue 18): the ICL pair written as the demo layout and as loose files, smaller.
