@@ -148,7 +148,7 @@ def run_stage(stage: str, trainable, loss_fn, val_fn, steps: int, lr: float, arg
         torch.nn.utils.clip_grad_norm_(trainable.parameters(), 1.0)
         opt.step()
         sched.step()
-        log["loss"].append(float(loss))
+        log["loss"].append(float(loss.detach()))
         bar.set_postfix(loss=f"{np.mean(log['loss'][-50:]):.4f}")
         done = step + 1
         if done % args.checkpoint_every == 0 or done == steps:
