@@ -410,6 +410,20 @@ def tiny_tokenizer(model_max_length: int = 77):
     return CLIPTokenizer(vocab=vocab, merges=[], model_max_length=model_max_length)
 
 
+def wake_zero_convolutions(controlnet):
+    """Give a random-weight ControlNet's zero convolutions small random weights (std 0.02,
+    bias 0, drawn from torch's global generator), so that its hint changes the features: with
+    zeros, as a fresh ControlNet has them, it would be a no-op. Returns ``controlnet``."""
+    import torch
+
+    with torch.no_grad():
+        for m in [*controlnet.controlnet_down_blocks, controlnet.controlnet_mid_block,
+                  controlnet.controlnet_cond_embedding.conv_out]:
+            m.weight.normal_(0.0, 0.02)
+            m.bias.zero_()
+    return controlnet
+
+
 def build_tiny_diffusion(cfg, device, dtype, resize_hw, seed: int = 0) -> DiffusionFeatures:
     """Random-weight (seeded) tiny UNet, ControlNet, VAE and CLIP text encoder with SD v1.5's
     block structure. ControlNet's zero convolutions get small random weights so the hint
@@ -424,12 +438,7 @@ def build_tiny_diffusion(cfg, device, dtype, resize_hw, seed: int = 0) -> Diffus
     cn_cfg = {k: v for k, v in TINY_UNET_CONFIG.items() if k not in ("out_channels",
                                                                       "up_block_types",
                                                                       "sample_size")}
-    controlnet = ControlNetModel(**cn_cfg, **TINY_CONTROLNET_EXTRA)
-    with torch.no_grad():
-        for m in [*controlnet.controlnet_down_blocks, controlnet.controlnet_mid_block,
-                  controlnet.controlnet_cond_embedding.conv_out]:
-            m.weight.normal_(0.0, 0.02)
-            m.bias.zero_()
+    controlnet = wake_zero_convolutions(ControlNetModel(**cn_cfg, **TINY_CONTROLNET_EXTRA))
     vae = AutoencoderKL(**TINY_VAE_CONFIG)
     text = CLIPTextModel(CLIPTextConfig(vocab_size=len(tok), bos_token_id=0, eos_token_id=1,
                                         pad_token_id=1, **TINY_TEXT_CONFIG))

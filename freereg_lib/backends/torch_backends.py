@@ -302,15 +302,11 @@ class MicroBackend(_TorchBackend):
         import torch
 
         from ..micro import models as M
-        from .diffusion import DiffusionFeatures
+        from .diffusion import DiffusionFeatures, wake_zero_convolutions
 
         if self.random_weights:
             mods = M.build(self.seed)
-            with torch.no_grad():
-                cn = mods["controlnet"]
-                for m in [*cn.controlnet_down_blocks, cn.controlnet_mid_block,
-                          cn.controlnet_cond_embedding.conv_out]:
-                    m.weight.normal_(0.0, 0.02)
+            wake_zero_convolutions(mods["controlnet"])
         else:
             mods = M.load(self.weights_dir, device="cpu")
         nets = [torch.nn.Module.to(mods[k], device=self.device, dtype=self.dtype).eval()
@@ -325,6 +321,5 @@ class MicroBackend(_TorchBackend):
             self._stub = StubBackend(self.cfg)
         return self._stub.mono_depth(image, depth_gt)
 
-    def mono_depth_batch(self, images, depth_gts=None) -> list[np.ndarray]:
-        gts = depth_gts if depth_gts is not None else [None] * len(images)
-        return [self.mono_depth(im, gt) for im, gt in zip(images, gts)]
+    # Per image, as the base class does: the torch backends' batched ZoeDepth is not used here.
+    mono_depth_batch = Backend.mono_depth_batch
