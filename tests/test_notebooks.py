@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -104,7 +105,7 @@ def test_notebook_is_committed_clean_with_a_parameters_cell_first(name):
     assert not dirty, f"{name}: code cells {dirty} carry outputs or execution counts; strip them before committing"
     # papermill must read every line of the cell (a line it cannot parse is silently not a parameter).
     declared = set(papermill.inspect_notebook(str(path)))
-    assignments = {line.split("=")[0].strip() for line in code[0].source.splitlines()
+    assignments = {re.split(r"[:=]", line)[0].strip() for line in code[0].source.splitlines()
                    if "=" in line.split("#")[0] and not line.startswith((" ", "\t", "#"))}
     assert assignments <= declared, f"{name}: papermill cannot parse parameter(s) {sorted(assignments - declared)}"
     missing = [p for p in COMMON_PARAMS if p not in declared]
