@@ -17,18 +17,39 @@ run there, with one line naming the parameter, when
 * papermill injected a name the notebook does not declare (a misspelt parameter: papermill
   itself only warns "Passed unknown parameter" and runs on with the default).
 
-This module owns those rules (:data:`CHOICES`, the annotation grammar of :func:`parse_type`)
-and :class:`ParameterError`; the notebooks own their declarations.
+The same cell calls :func:`quiet_kernel` first, so the executed copies read well: progress bars
+as text (tqdm's widget bars are saved at 0 % by papermill) and no Open3D "WebVisualizer" banner.
+
+This module owns those rules (:data:`CHOICES`, the annotation grammar of :func:`parse_type`),
+:class:`ParameterError` and the kernel set-up; the notebooks own their declarations.
 """
 from __future__ import annotations
 
 import difflib
+import os
 import re
 import typing
 from typing import Any, Iterable, Mapping, Optional, Union
 
 # The papermill comment that opens the cell it injects (tagged ``injected-parameters``).
 INJECTED_HEADER = "# Parameters"
+
+
+def quiet_kernel() -> None:
+    """Set a notebook kernel up for readable executed copies (call it before Open3D is imported).
+
+    * ``tqdm.auto`` (used by this library, diffusers and transformers) gives text progress bars,
+      which papermill records as they end, instead of widgets, which it records at 0 %;
+    * Open3D's import does not print its "Jupyter environment detected. Enabling Open3D
+      WebVisualizer." banner nor start its WebRTC backend (``OPEN3D_DISABLE_WEB_VISUALIZER``).
+    """
+    os.environ.setdefault("OPEN3D_DISABLE_WEB_VISUALIZER", "true")
+    import tqdm.auto
+    import tqdm.autonotebook
+    import tqdm.std
+
+    for module in (tqdm.auto, tqdm.autonotebook):
+        module.tqdm, module.trange = tqdm.std.tqdm, tqdm.std.trange
 
 
 def _choices() -> dict[str, tuple[str, ...]]:

@@ -48,7 +48,8 @@ def test_every_parameter_has_a_type_papermill_shows_and_its_default_conforms(pat
     assert P.check_parameters(namespace, injected=[]).keys() == spec.keys()
     # The first code cell after the parameters checks them before anything else runs.
     body = [n for n in ast.parse(first.source).body if not isinstance(n, (ast.Import, ast.ImportFrom))]
-    assert "check_parameters(globals())" in ast.unparse(body[0]), f"{path.name}: the first code cell must check"
+    assert "quiet_kernel()" in ast.unparse(body[0]) and "check_parameters(globals())" in ast.unparse(body[1]), \
+        f"{path.name}: the first code cell must set the kernel up and check the parameters first"
 
 
 def test_help_notebook_prints_a_type_for_every_parameter():
