@@ -4,18 +4,25 @@ PY := .venv/bin/python
 export OPENBLAS_NUM_THREADS ?= 1
 RUN ?= runs/reproduce
 
-.PHONY: reproduce test clean-venv
+.PHONY: reproduce book test clean-venv
 
 .venv/.installed: environment/requirements.txt pyproject.toml environment/setup_env.sh
 	environment/setup_env.sh
 
+# Runs the notebooks into $(RUN), then writes the site ($(RUN)/site) and the README's gallery.
 reproduce: .venv/.installed
 	$(PY) -m freereg_lib.reproduce --out $(RUN)
+
+# The executed notebooks of $(RUN) as a static HTML site, $(RUN)/site/index.html (nbconvert).
+book: .venv/.installed
+	$(PY) -m freereg_lib.site $(RUN)
 
 # Two pytest workers (pytest-xdist), a test file or notebook each at a time: many tests wait on
 # kernels and subprocesses, so two keep both cores busy. nbmake's 300 s cell limit is for one
 # notebook alone; with another test beside it notebook 04's benchmark cell needs more.
+# setup_env.sh --browser installs Chromium for tests/test_site.py where it runs as root.
 test: .venv/.installed
+	environment/setup_env.sh --browser
 	$(PY) -m pytest -q -n 2 --dist loadfile --nbmake --nbmake-timeout=900 --durations=15 tests notebooks
 
 clean-venv:

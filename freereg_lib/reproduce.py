@@ -2,7 +2,9 @@
 
 With the notebooks present it executes all five with papermill on their defaults
 (synthetic scenes; the micro models in 01, 03 and 04, the stub elsewhere) into a run folder, then prints where the executed
-notebooks, figures and tables are, and the benchmark's table beside the paper's.
+notebooks, figures and tables are, and the benchmark's table beside the paper's. Then it renders the
+executed notebooks as a static site (``<out>/site/index.html``, :mod:`freereg_lib.site`) and rewrites
+the README's gallery (``figures/gallery/``) from the figures of the run; ``--no-book`` skips both.
 ``--quick`` skips the notebooks and registers a handful of synthetic pairs directly.
 """
 from __future__ import annotations
@@ -71,11 +73,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--quick", action="store_true", help="skip the notebooks; register synthetic pairs directly")
     ap.add_argument("--pairs", type=int, default=6, help="pairs for --quick")
+    ap.add_argument("--no-book", action="store_true", help="do not write the site and the README's gallery")
     args = ap.parse_args(argv)
     if args.quick or not any(NOTEBOOKS.glob("[0-9][0-9]_*.ipynb")):
         quick(args.pairs, args.seed)
         return 0
-    return 1 if notebooks(Path(args.out).resolve(), args.seed) else 0
+    out = Path(args.out).resolve()
+    failed = notebooks(out, args.seed)
+    if not args.no_book:
+        book(out)
+    return 1 if failed else 0
+
+
+def book(out: Path) -> None:
+    """The site of the run (``out/site``) and the README's gallery, from the figures of the run."""
+    from . import site
+
+    index = site.build_site(out, figures_dir=ROOT / "figures")
+    print(f"\nSite:               {index}")
+    written = site.write_gallery(ROOT / "figures")
+    print("Gallery (README):   " + ", ".join(f"{p.name} ({p.stat().st_size // 1024} KB)" for p in written))
 
 
 if __name__ == "__main__":
