@@ -760,9 +760,15 @@ def _check_overlap(overlap: tuple[float, float]) -> tuple[float, float]:
     return lo, hi
 
 
+def _seed_label(seed) -> str:
+    if isinstance(seed, (int, np.integer)):
+        return f"seed{int(seed):04d}"
+    return "seed" + "-".join(str(int(s)) for s in seed)
+
+
 def make_pair(
     kind: str = "indoor",
-    seed: int = 0,
+    seed: int | tuple[int, ...] = 0,
     overlap: tuple[float, float] = (0.3, 0.8),
     image_size: tuple[int, int] | None = None,
 ) -> Pair:
@@ -779,6 +785,9 @@ def make_pair(
     (N <= ``MAX_POINTS``), ``point_ids (N,) int32``, ``depth_gt (H, W) float64``,
     ``image_ids (H, W) int32``, ``K_image`` and ``K_depth (3, 3)``, ``depth_size = (H, W)``,
     ``T_pc_sensor`` the depth camera in the world, ``T_cam_pc`` the world in the camera.
+
+    ``seed`` may also be a tuple of integers (a NumPy seed sequence), as the micro models'
+    training pairs are drawn, so that no integer evaluation seed reproduces them.
     """
     if kind not in KINDS:
         raise ValueError(f"unknown synthetic kind {kind!r}; expected one of {KINDS}")
@@ -848,7 +857,7 @@ def make_pair(
                 depth_gt=depth_gt,
                 image_ids=image_ids,
                 point_ids=point_ids[keep].astype(np.int32),
-                name=f"synthetic-{kind}/seed{seed:04d}",
+                name=f"synthetic-{kind}/{_seed_label(seed)}",
                 meta={"dataset": "synthetic", "kind": kind, "outdoor": kind == "outdoor",
                       "seed": seed, "overlap_range": (lo, hi)},
             )

@@ -98,6 +98,12 @@ class Backend:
         """As :meth:`diffusion_rgb_batch` for depth maps (:meth:`diffusion_depth`)."""
         return [_pick(self.diffusion_depth(d, **h), layers) for d, h in zip(depths, _hints(hints, len(depths)))]
 
+    def fcgf_model(self):
+        """The FCGF network this backend brings (e.g. the micro backend's, trained on the
+        synthetic rooms), or None: ``cfg.geometric = "fcgf"`` then loads the official
+        checkpoint (:func:`freereg_lib.geometric.fcgf_checkpoint_path`)."""
+        return None
+
     def mono_depth_batch(self, images: Sequence[np.ndarray],
                          depth_gts: Sequence[np.ndarray | None] | None = None) -> list[np.ndarray]:
         """:meth:`mono_depth` of several images (``depth_gts``: the stub's true depths); this

@@ -151,14 +151,23 @@ def _make_modules():
                     ctx["maps"][out_stride] = out_coords
                 step = x.stride
                 sign = 1
-            table = ctx["lookup"](x.stride, x.coords)
-            offs = kernel_offsets(self.kernel_size).to(x.coords.device) * step * sign
+            # A kernel map depends only on the coordinates at both strides, so the convolutions
+            # of one block (and training's backward pass) share it, as ME's kernel-map cache does.
+            maps = ctx.setdefault("kernel_maps", {})
+            key = (x.stride, out_stride, self.kernel_size, self.transpose)
+            if key not in maps:
+                table = ctx["lookup"](x.stride, x.coords)
+                offs = kernel_offsets(self.kernel_size).to(x.coords.device) * step * sign
+                pairs = []
+                for i in range(len(offs)):
+                    src = table.find(out_coords + offs[i])
+                    o = torch.nonzero(src >= 0).squeeze(1)
+                    if len(o):
+                        pairs.append((i, o, src[o]))
+                maps[key] = pairs
             out = x.feats.new_zeros(len(out_coords), self.cout)
-            for i in range(len(offs)):
-                src = table.find(out_coords + offs[i])
-                o = torch.nonzero(src >= 0).squeeze(1)
-                if len(o):
-                    out.index_add_(0, o, x.feats[src[o]] @ self.kernel[i])
+            for i, o, src in maps[key]:
+                out.index_add_(0, o, x.feats[src] @ self.kernel[i])
             if self.bias is not None:
                 out = out + self.bias
             return SparseTensor(out_coords, out, out_stride)
@@ -341,6 +350,10 @@ def _load_checkpoint_file(path):
     import pickle
 
     torch = _torch()
+    if str(path).endswith(".safetensors"):  # the micro FCGF (float16 on disk; loaded as float32)
+        from safetensors.torch import load_file
+
+        return {k: v.float() if v.is_floating_point() else v for k, v in load_file(str(path)).items()}
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError:
@@ -358,7 +371,8 @@ def _load_checkpoint_file(path):
 
 
 def load_fcgf(checkpoint, conv1_kernel_size: int | None = None, device="cpu"):
-    """ResUNetBN2C with the weights of an official FCGF checkpoint (a path or a state dict).
+    """ResUNetBN2C with the weights of an official FCGF checkpoint (a path or a state dict),
+    or of a ``.safetensors`` state dict such as the micro FCGF's.
 
     ``conv1_kernel_size`` (7 for 3DMatch, 5 for KITTI) defaults to the cube root of
     ``conv1.kernel``'s first dimension; in / out channels come from the kernels' shapes.

@@ -323,3 +323,16 @@ class MicroBackend(_TorchBackend):
 
     # Per image, as the base class does: the torch backends' batched ZoeDepth is not used here.
     mono_depth_batch = Backend.mono_depth_batch
+
+    def fcgf_model(self):
+        """The micro FCGF (``weights_dir/fcgf``, else the committed one; loaded by the official
+        checkpoints' loader) for ``cfg.geometric = "fcgf"``, or the same network with seeded
+        random weights when ``random_weights``."""
+        if getattr(self, "_fcgf", None) is None:
+            from ..micro import fcgf as MF
+
+            if self.random_weights:
+                self._fcgf = MF.build(self.seed).to(self.device).eval()
+            else:
+                self._fcgf = MF.load(MF.folder_of(self.weights_dir), device=self.device)
+        return self._fcgf

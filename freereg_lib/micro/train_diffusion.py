@@ -28,6 +28,7 @@ import argparse
 import json
 import os
 import time
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -100,7 +101,10 @@ def step_rng(seed: int, stage: str, step: int) -> tuple[np.random.Generator, "ob
     so a resumed run draws what an uninterrupted one draws."""
     import torch
 
-    ss = np.random.SeedSequence([seed, STAGES.index(stage), step])
+    # The diffusion stages keep their index (the committed weights were drawn so); other
+    # models' loops (e.g. ``train_fcgf``) are told apart by a checksum of their name.
+    tag = STAGES.index(stage) if stage in STAGES else zlib.crc32(stage.encode())
+    ss = np.random.SeedSequence([seed, tag, step])
     g = torch.Generator().manual_seed(int(ss.generate_state(1, dtype=np.uint64)[0] >> 1))
     return np.random.default_rng(ss), g
 
@@ -109,7 +113,7 @@ def run_stage(stage: str, trainable, loss_fn, val_fn, steps: int, lr: float, arg
     """Seeded, resumable training of ``trainable`` (an ``nn.Module``) for ``steps`` steps.
 
     ``loss_fn(rng, g)`` returns the training loss of one step; ``val_fn()`` the validation
-    loss. Returns the stage's log: losses per step, validation losses, seconds.
+    loss (or a dict of validation numbers). Returns the stage's log: losses per step, validation losses, seconds.
     """
     import torch
 
@@ -154,7 +158,8 @@ def run_stage(stage: str, trainable, loss_fn, val_fn, steps: int, lr: float, arg
         if done % args.checkpoint_every == 0 or done == steps:
             trainable.eval()
             with torch.no_grad():
-                log["val"].append([done, float(val_fn())])
+                val = val_fn()
+                log["val"].append([done, val if isinstance(val, dict) else float(val)])
             trainable.train()
             log["seconds"] += time.perf_counter() - t0
             t0 = time.perf_counter()

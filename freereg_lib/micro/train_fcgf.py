@@ -1,0 +1,329 @@
+"""Train the micro FCGF from scratch: FCGF's hardest-contrastive loss on synthetic room clouds.
+
+    python -m freereg_lib.micro.train_fcgf [--out runs/micro/train] [--pairs 240] [--steps 500]
+        [--crop-radius 1.0] [--export freereg_lib/micro/weights/fcgf]
+
+The network is the plain-torch ``ResUNetBN2C`` of :mod:`freereg_lib.backends.fcgf` at the
+paper's 3DMatch settings (conv1 kernel 7, 32-d output, 2.5 cm voxels), so the weights it
+writes load with :func:`~freereg_lib.backends.fcgf.load_fcgf` exactly as the official
+checkpoints do.
+
+Data (:func:`training_pairs`): pair ``k`` is ``synthetic.make_pair("indoor", seed=(TRAIN_STREAM,
+k))``, a seed sequence no integer evaluation seed reproduces. Its two clouds are the ones the
+pipeline gives FCGF at inference (:func:`freereg_lib.pipeline.compute_features`):
+
+* image side: the image's depth (here the true one), range-limited and edge-filtered as the
+  monocular map is, back-projected in the camera frame;
+* depth side: the pipeline's depth view of the cloud (projected, densified), back-projected
+  into the cloud's frame;
+
+each reduced to one point per 2.5 cm voxel. Positives are voxels within 1.5 voxels of each
+other under the true pose (FCGF's ``positive_pair_search_voxel_size_multiplier``).
+
+A step, as FCGF's 3DMatch training: one pair; a ball of ``--crop-radius`` around a random
+overlapping point cut from both clouds (a 2-core CPU cannot afford whole rooms); each side
+rotated uniformly at random (FCGF's ``rotation_range`` 360 deg) and the image side scaled by
+``U(1 - s, 1 + s)`` (FCGF's ``use_random_scale``, on here with ``--scale-aug`` 0.1 because the
+image side is a monocular depth cloud at inference); both re-voxelised and passed through the
+network as one sparse batch. Loss: FCGF's ``HardestContrastiveLoss`` (positive margin 0.1,
+negative margin 1.4, 1024 positives, 256 hardest-negative candidates a side). Optimiser: AdamW
+(:func:`~freereg_lib.micro.train_diffusion.run_stage`, seeded per step, checkpoints, resume),
+not FCGF's SGD: a few hundred steps, not 100 epochs.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from .fcgf import VOXEL, build, save
+
+TRAIN_STREAM = 0xF3EE_0002
+POS_RADIUS = 1.5 * VOXEL  # FCGF: positive_pair_search_voxel_size_multiplier x voxel
+POS_MARGIN, NEG_MARGIN = 0.1, 1.4
+NUM_POS, NUM_HN = 1024, 256
+VAL_PAIRS = 4  # held out from the end of the training stream; a fixed crop and rotation each
+BATCH_SHIFT = 1 << 14  # voxels between the two clouds of a batch (a multiple of the deepest stride)
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--out", default="runs/micro/train", help="checkpoints and logs")
+    p.add_argument("--pairs-file", default=None, help="cached training clouds (.npz); default OUT/../fcgf_pairs.npz")
+    p.add_argument("--pairs", type=int, default=240, help="training pairs (plus %d validation pairs)" % VAL_PAIRS)
+    p.add_argument("--steps", type=int, default=500)
+    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--warmup", type=int, default=50, help="linear learning-rate warm-up steps")
+    p.add_argument("--crop-radius", type=float, default=1.0, help="metres around the crop's centre")
+    p.add_argument("--scale-aug", type=float, default=0.1, help="image-side scale drawn from U(1-s, 1+s)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--checkpoint-every", type=int, default=50)
+    p.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
+    p.add_argument("--workers", type=int, default=None, help="processes rendering the pairs")
+    p.add_argument("--export", default=None, help="write the trained weights to this folder")
+    return p.parse_args(argv)
+
+
+# ------------------------------------------------------------------------------- data
+
+def pair_clouds(pair, cfg=None) -> tuple[np.ndarray, np.ndarray]:
+    """The two clouds the pipeline hands FCGF for ``pair``, with the image side's true depth:
+    ``(image side (Na, 3) camera frame, depth side (Nb, 3) cloud frame)``, float64."""
+    from .. import cameras, projection
+    from ..config import FreeRegConfig
+    from ..pipeline import depth_view
+
+    cfg = cfg or FreeRegConfig()
+    d = np.asarray(pair.depth_gt, dtype=np.float64)
+    d = np.where((d > cfg.depth_min) & (d < cfg.depth_max), d, 0.0)
+    if cfg.edge_filter_m > 0:
+        d = projection.edge_filter(d, cfg.edge_filter_m)
+    image_side = cameras.backproject(d, pair.K_image)[0]
+    dense = depth_view(pair, cfg).dense
+    depth_side = cameras.transform(pair.T_pc_sensor, cameras.backproject(dense, pair.K_depth)[0])
+    return image_side, depth_side
+
+
+def one_per_voxel(points: np.ndarray, voxel: float = VOXEL) -> np.ndarray:
+    """The first point of each voxel (FCGF's quantisation), ``(M, 3)``."""
+    from ..backends.fcgf import voxelize
+
+    return np.asarray(points)[voxelize(points, voxel)[1]]
+
+
+def _training_pair(k: int) -> dict:
+    from .. import synthetic as S
+
+    pair = S.make_pair("indoor", seed=(TRAIN_STREAM, int(k)))
+    a, b = pair_clouds(pair)
+    return {"a": one_per_voxel(a).astype(np.float32), "b": one_per_voxel(b).astype(np.float32),
+            "T": pair.T_cam_pc}
+
+
+def training_pairs(n: int, first: int = 0, workers: int | None = None, progress: bool = True) -> list[dict]:
+    """Clouds of training pairs ``first .. first + n - 1``: ``a`` image side (camera frame),
+    ``b`` depth side (cloud frame), one point per voxel, float32; ``T`` the true ``T_cam_pc``."""
+    ks = list(range(first, first + n))
+    workers = workers or min(n, os.cpu_count() or 1)
+    bar = tqdm(total=n, desc="rendering training pairs", unit="pair", disable=not progress)
+    out = []
+    if workers <= 1:
+        for k in ks:
+            out.append(_training_pair(k))
+            bar.update()
+    else:
+        with ProcessPoolExecutor(workers) as pool:
+            for item in pool.map(_training_pair, ks, chunksize=2):
+                out.append(item)
+                bar.update()
+    bar.close()
+    return out
+
+
+def load_or_make_pairs(path: Path, n: int, workers: int | None = None) -> list[dict]:
+    """The cached clouds of the first ``n`` pairs in ``path`` (made and saved when absent or
+    when the cache holds another count)."""
+    path = Path(path)
+    if path.exists():
+        with np.load(path) as z:
+            if int(z["n"]) == n:
+                return [{"a": z[f"a{k}"], "b": z[f"b{k}"], "T": z[f"T{k}"]} for k in range(n)]
+    pairs = training_pairs(n, workers=workers)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.npz")
+    arrays = {f"{key}{k}": p[key] for k, p in enumerate(pairs) for key in ("a", "b", "T")}
+    np.savez(tmp, n=n, **arrays)
+    os.replace(tmp, path)
+    return pairs
+
+
+# --------------------------------------------------------------------------- batches
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    """A rotation drawn uniformly from SO(3) (a normalised Gaussian quaternion)."""
+    q = rng.standard_normal(4)
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def positive_pairs(a: np.ndarray, b: np.ndarray, radius: float = POS_RADIUS) -> np.ndarray:
+    """``(P, 2)`` index pairs ``(i, j)`` with ``|a_i - b_j| <= radius`` (same frame), sorted."""
+    from scipy.spatial import cKDTree
+
+    if len(a) == 0 or len(b) == 0:
+        return np.zeros((0, 2), np.int64)
+    hits = cKDTree(b).query_ball_point(a, radius)
+    i = np.repeat(np.arange(len(a)), [len(h) for h in hits])
+    j = np.fromiter((x for h in hits for x in sorted(h)), dtype=np.int64, count=len(i))
+    return np.stack([i, j], axis=1)
+
+
+def make_batch(pair: dict, rng: np.random.Generator, crop_radius: float, scale_aug: float) -> dict | None:
+    """One training batch of a pair: voxel coordinates of both crops (``coords_a``,
+    ``coords_b``) and their positive pairs; None when the crop holds no positive."""
+    from ..backends.fcgf import voxelize
+
+    T = np.asarray(pair["T"], dtype=np.float64)
+    a = np.asarray(pair["a"], dtype=np.float64)
+    b_cam = np.asarray(pair["b"], dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
+    near = positive_pairs(a, b_cam)
+    if len(near) == 0:
+        return None
+    centre = a[near[rng.integers(len(near)), 0]]
+    a = a[np.linalg.norm(a - centre, axis=1) <= crop_radius]
+    b_cam = b_cam[np.linalg.norm(b_cam - centre, axis=1) <= crop_radius]
+    scale = rng.uniform(1 - scale_aug, 1 + scale_aug) if scale_aug > 0 else 1.0
+    ra, rb = random_rotation(rng), random_rotation(rng)
+    coords_a, sel_a = voxelize(((a - centre) * scale) @ ra.T, VOXEL)
+    coords_b, sel_b = voxelize((b_cam - centre) @ rb.T, VOXEL)
+    pos = positive_pairs(a[sel_a], b_cam[sel_b])
+    if len(pos) == 0:
+        return None
+    return {"coords_a": coords_a, "coords_b": coords_b, "pos": pos}
+
+
+def forward_pair(net, batch: dict):
+    """Features of both crops from one pass (cloud B shifted far along x, as ME batches)."""
+    import torch
+
+    from ..backends.fcgf import SparseTensor
+
+    cb = batch["coords_b"].copy()
+    cb[:, 0] += BATCH_SHIFT
+    coords = torch.from_numpy(np.concatenate([batch["coords_a"], cb]))
+    out = net(SparseTensor(coords, torch.ones(len(coords), net.conv1.cin)))
+    na = len(batch["coords_a"])
+    return out.feats[:na], out.feats[na:]
+
+
+def hardest_contrastive(fa, fb, pos: np.ndarray, g, num_pos: int = NUM_POS, num_hn: int = NUM_HN):
+    """FCGF's ``HardestContrastiveLoss``: ``pos_loss + (neg_loss_a + neg_loss_b) / 2``.
+
+    Positives (``pos`` index pairs, at most ``num_pos`` drawn) are pulled within
+    ``POS_MARGIN``; for each, the nearest of ``num_hn`` random candidates of the other side,
+    unless it is itself a positive of that point, is pushed beyond ``NEG_MARGIN``.
+    """
+    import torch
+
+    na, nb = len(fa), len(fb)
+    pos_t = torch.from_numpy(pos)
+    if len(pos_t) > num_pos:
+        pos_t = pos_t[torch.randperm(len(pos_t), generator=g)[:num_pos]]
+    ia, ib = pos_t[:, 0], pos_t[:, 1]
+    sel_a = torch.randperm(na, generator=g)[:min(na, num_hn)]
+    sel_b = torch.randperm(nb, generator=g)[:min(nb, num_hn)]
+    pos_keys = torch.from_numpy(pos[:, 0] * nb + pos[:, 1])
+
+    def dist(x, y):
+        return torch.sqrt(torch.clamp((x[:, None, :] - y[None, :, :]).pow(2).sum(-1), min=1e-7))
+
+    d_ab = dist(fa[ia], fb[sel_b])  # anchors of A against candidates of B
+    d_ba = dist(fb[ib], fa[sel_a])
+    min_ab, arg_ab = d_ab.min(1)
+    min_ba, arg_ba = d_ba.min(1)
+    mask_a = ~torch.isin(ia * nb + sel_b[arg_ab], pos_keys)
+    mask_b = ~torch.isin(sel_a[arg_ba] * nb + ib, pos_keys)
+    pos_loss = torch.relu((fa[ia] - fb[ib]).norm(dim=1) - POS_MARGIN).pow(2).mean()
+    neg_a = torch.relu(NEG_MARGIN - min_ab[mask_a]).pow(2).mean() if mask_a.any() else fa.sum() * 0
+    neg_b = torch.relu(NEG_MARGIN - min_ba[mask_b]).pow(2).mean() if mask_b.any() else fa.sum() * 0
+    return pos_loss + (neg_a + neg_b) / 2
+
+
+def hit_ratio(fa, fb, pos: np.ndarray, coords_a, coords_b, tau: float = 0.1) -> float:
+    """FCGF's hit ratio on a crop: the share of image-side voxels with a positive whose feature
+    nearest neighbour on the other side lies within ``tau`` metres of a true partner (distance
+    measured between the voxels' own positives, so rotations do not matter)."""
+    import torch
+
+    anchors = np.unique(pos[:, 0])
+    nn = torch.cdist(fa[torch.from_numpy(anchors)], fb).argmin(1).numpy()
+    # A prediction is a hit when the predicted voxel b lies within tau of some partner of a:
+    # with the crop's B voxels in a common frame that is the partners' spread (<= POS_RADIUS).
+    partners: dict[int, list[int]] = {}
+    for i, j in pos:
+        partners.setdefault(int(i), []).append(int(j))
+    b = np.asarray(coords_b, dtype=np.float64) * VOXEL
+    hits = 0
+    for k, i in enumerate(anchors):
+        # coords_b are rotated, but distances within B are not: compare B to B.
+        d = np.linalg.norm(b[partners[int(i)]] - b[nn[k]], axis=1).min()
+        hits += d <= tau
+    return float(hits / max(len(anchors), 1))
+
+
+# ----------------------------------------------------------------------------- training
+
+def main(argv=None) -> int:
+    import torch
+
+    from .train_diffusion import run_stage
+
+    args = parse_args(argv)
+    torch.set_num_threads(args.threads or os.cpu_count() or 1)
+    t_start = time.perf_counter()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    pairs = load_or_make_pairs(Path(args.pairs_file or out.parent / "fcgf_pairs.npz"),
+                               args.pairs + VAL_PAIRS, args.workers)
+    train, val = pairs[:args.pairs], pairs[args.pairs:]
+    sizes = np.array([[len(p["a"]), len(p["b"])] for p in train])
+    print(f"{len(train)} training pairs, {len(val)} validation pairs; voxels per cloud "
+          f"{int(sizes.mean())} on average", flush=True)
+    net = build(args.seed)
+
+    def draw(rng, p):
+        while True:
+            batch = make_batch(p(rng), rng, args.crop_radius, args.scale_aug)
+            if batch is not None:
+                return batch
+
+    def loss_fn(rng, g):
+        batch = draw(rng, lambda r: train[r.integers(len(train))])
+        fa, fb = forward_pair(net, batch)
+        return hardest_contrastive(fa, fb, batch["pos"], g)
+
+    val_batches = []
+    for k, p in enumerate(val):
+        rng = np.random.default_rng((args.seed, k))
+        val_batches.append(draw(rng, lambda r, p=p: p))
+
+    def val_fn():
+        g = torch.Generator().manual_seed(0)
+        losses, hits = [], []
+        for batch in val_batches:
+            fa, fb = forward_pair(net, batch)
+            losses.append(float(hardest_contrastive(fa, fb, batch["pos"], g)))
+            hits.append(hit_ratio(fa, fb, batch["pos"], batch["coords_a"], batch["coords_b"]))
+        return {"loss": float(np.mean(losses)), "hit_ratio": float(np.mean(hits))}
+
+    log = run_stage("fcgf", net, loss_fn, val_fn, args.steps, args.lr, args, out)
+    seconds = time.perf_counter() - t_start
+    if args.export:
+        facts = {
+            "arguments": {k: v for k, v in vars(args).items()
+                          if k not in ("out", "pairs_file", "export", "threads", "workers")},
+            "train_stream": f"synthetic.make_pair('indoor', seed=({TRAIN_STREAM:#x}, k)) for k in 0..pairs-1",
+            "validation_pairs": f"k = pairs .. pairs + {VAL_PAIRS - 1} of the same stream",
+            "voxels_per_cloud_mean": int(sizes.mean()),
+            "parameters_millions": round(sum(p.numel() for p in net.parameters()) / 1e6, 3),
+            "step_seconds": round(log["seconds"], 1),
+            "last_run_seconds": round(seconds, 1),
+            "steps": log["steps"], "loss": log["loss"], "val": log["val"],
+        }
+        print(f"weights written to {save(net, Path(args.export), facts)}", flush=True)
+    print(f"total time {seconds / 60:.1f} min", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

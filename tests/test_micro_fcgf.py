@@ -1,0 +1,142 @@
+"""The micro FCGF: its training pieces on hand-made cases, a few steps lower the loss, training
+resumes exactly, the weights round-trip through the official checkpoints' loader, and the
+micro backend hands its network to the pipeline."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from freereg_lib.micro import fcgf as MF  # noqa: E402
+from freereg_lib.micro import train_fcgf as T  # noqa: E402
+
+
+def _pair(seed: int = 0, n: int = 500, size: float = 0.4) -> dict:
+    """Two views of one small box corner: the same surface sampled twice, B in its own frame."""
+    rng = np.random.default_rng(seed)
+    u, v = rng.uniform(0, size, (2, n))
+    faces = np.stack([np.stack([u, v, 0 * u], 1), np.stack([u, 0 * u, v], 1), np.stack([0 * u, u, v], 1)])
+    a = faces.reshape(-1, 3)
+    R = T.random_rotation(np.random.default_rng(seed + 1))
+    T_cam_pc = np.eye(4)
+    T_cam_pc[:3, :3], T_cam_pc[:3, 3] = R, [0.1, -0.2, 0.3]
+    b_cam = a + rng.normal(0, 0.002, a.shape)
+    b = (b_cam - T_cam_pc[:3, 3]) @ R  # into the cloud frame: T_cam_pc maps it back
+    return {"a": MF_one(a), "b": MF_one(b), "T": T_cam_pc}
+
+
+def MF_one(p):
+    return T.one_per_voxel(p).astype(np.float32)
+
+
+def test_random_rotation_is_a_rotation():
+    R = T.random_rotation(np.random.default_rng(3))
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0)
+
+
+def test_positive_pairs_exact():
+    a = np.array([[0.0, 0, 0], [1, 0, 0], [5, 5, 5]])
+    b = np.array([[0.01, 0, 0], [1.0, 0.02, 0], [1.0, -0.03, 0], [9, 9, 9]])
+    pos = T.positive_pairs(a, b, radius=0.0375)
+    assert pos.tolist() == [[0, 0], [1, 1], [1, 2]]
+    assert T.positive_pairs(a, b[:0]).shape == (0, 2)
+
+
+def test_batch_positives_agree_with_the_true_pose(monkeypatch):
+    # Without rotations both crops sit in the camera frame around one centre, so each positive
+    # pair's voxels are at most POS_RADIUS apart, plus a voxel of quantisation each side.
+    monkeypatch.setattr(T, "random_rotation", lambda rng: np.eye(3))
+    batch = T.make_batch(_pair(), np.random.default_rng(0), crop_radius=0.5, scale_aug=0.0)
+    assert batch is not None and len(batch["pos"]) > 100
+    ia, ib = batch["pos"][:, 0], batch["pos"][:, 1]
+    gap = np.linalg.norm((batch["coords_a"][ia] - batch["coords_b"][ib]) * T.VOXEL, axis=1)
+    assert gap.max() <= T.POS_RADIUS + 2 * np.sqrt(3) * T.VOXEL
+    assert np.median(gap) < 2 * T.VOXEL
+
+
+def test_hardest_contrastive_is_zero_for_perfect_features():
+    # Positives share a feature, negatives are orthogonal: within both margins, loss 0.
+    fa = torch.eye(4)
+    fb = torch.eye(4)
+    pos = np.array([[0, 0], [1, 1], [2, 2], [3, 3]])
+    loss = T.hardest_contrastive(fa, fb, pos, torch.Generator().manual_seed(0), num_hn=4)
+    # Orthogonal unit vectors are sqrt(2) = 1.414 apart, beyond the 1.4 negative margin.
+    assert float(loss) == pytest.approx(0.0, abs=1e-6)
+    swapped = T.hardest_contrastive(fa, fb[[1, 0, 3, 2]], pos, torch.Generator().manual_seed(0), num_hn=4)
+    assert float(swapped) > 1.0
+
+
+def test_a_few_steps_lower_the_loss_on_a_fixed_batch():
+    net = MF.build(0).train()
+    batch = T.make_batch(_pair(), np.random.default_rng(1), crop_radius=0.5, scale_aug=0.0)
+    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
+    losses = []
+    for _ in range(4):
+        fa, fb = T.forward_pair(net, batch)
+        loss = T.hardest_contrastive(fa, fb, batch["pos"], torch.Generator().manual_seed(0))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert losses[-1] < 0.85 * losses[0], losses
+
+
+def test_training_resumes_bit_identical(tmp_path):
+    import json as _json
+
+    pairs = [_pair(0), _pair(1), _pair(2)]
+    cache = tmp_path / "pairs.npz"
+    arrays = {f"{k}{i}": p[k] for i, p in enumerate(pairs) for k in ("a", "b", "T")}
+    np.savez(cache, n=3, **arrays)
+    common = ["--pairs", "2", "--pairs-file", str(cache), "--crop-radius", "0.4", "--threads", "1",
+              "--checkpoint-every", "2", "--warmup", "2"]
+    T.VAL_PAIRS = 1
+    try:
+        T.main(common + ["--out", str(tmp_path / "a"), "--steps", "4", "--export", str(tmp_path / "wa")])
+        T.main(common + ["--out", str(tmp_path / "b"), "--steps", "2"])
+        T.main(common + ["--out", str(tmp_path / "b"), "--steps", "4", "--export", str(tmp_path / "wb")])
+    finally:
+        T.VAL_PAIRS = 4
+    a = (tmp_path / "wa" / MF.WEIGHTS_FILE).read_bytes()
+    b = (tmp_path / "wb" / MF.WEIGHTS_FILE).read_bytes()
+    assert a == b
+    facts = _json.loads((tmp_path / "wb" / "training.json").read_text())
+    assert len(facts["loss"]) == 4 and facts["val"][-1][0] == 4
+
+
+def test_weights_round_trip_through_the_official_loader(tmp_path):
+    from freereg_lib.backends.fcgf import fcgf_features, load_fcgf
+
+    net = MF.build(5).eval()
+    MF.save(net, tmp_path)
+    loaded = load_fcgf(str(tmp_path / MF.WEIGHTS_FILE))
+    assert loaded.conv1.kernel_size == 7
+    pts = _pair()["a"].astype(np.float64)
+    _, f0 = fcgf_features(pts, MF.VOXEL, net)
+    _, f1 = fcgf_features(pts, MF.VOXEL, loaded)
+    # float16 on disk: features agree to float16 precision, not bit for bit.
+    assert np.abs(f0 - f1).max() < 2e-2
+    with pytest.raises(FileNotFoundError, match="train_fcgf --export"):
+        MF.load(tmp_path / "nowhere")
+
+
+def test_micro_backend_gives_the_pipeline_its_fcgf():
+    from freereg_lib import pipeline, synthetic
+    from freereg_lib.backends import get_backend
+    from freereg_lib.config import FreeRegConfig
+
+    cfg = replace(FreeRegConfig(), geometric="fcgf")
+    backend = get_backend("micro", cfg, random_weights=True)
+    pair = synthetic.make_pair("indoor", seed=7, image_size=(120, 160))
+    feats = pipeline.compute_features(pair, backend, cfg, diffusion=False, geometric=True, mono=pair.depth_gt)
+    assert feats.geo_image.shape[1] == 32 and feats.geo_depth.shape[1] == 32
+    norms = np.linalg.norm(feats.geo_depth, axis=1)
+    assert np.all((np.abs(norms - 1) < 1e-4) | (norms == 0))
+    # The FPFH config of the same backend gives FPFH's 33-d features: the choice is cfg's.
+    fp = pipeline.compute_features(pair, backend, replace(cfg, geometric="fpfh"), diffusion=False, geometric=True,
+                                   mono=pair.depth_gt)
+    assert fp.geo_image.shape[1] == 33
