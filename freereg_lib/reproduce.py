@@ -81,7 +81,13 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out).resolve()
     failed = notebooks(out, args.seed)
     if not args.no_book:
-        book(out)
+        from .site import SiteError
+
+        try:
+            book(out)
+        except SiteError as exc:
+            print(f"site: {exc}", file=sys.stderr)
+            return 1
     return 1 if failed else 0
 
 
