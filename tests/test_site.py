@@ -269,3 +269,13 @@ def test_compact_png_fits_the_limits(tmp_path):
     with Image.open(out) as im:
         assert im.width <= 1000
     assert out.stat().st_size <= 400_000
+
+
+def test_a_float_whose_section_is_gone_fails_the_build_naming_it(tmp_path):
+    nb = nbformat.read(NOTEBOOKS / "03_fusion.ipynb", as_version=4)
+    for cell in nb.cells:
+        if cell.cell_type == "markdown" and cell.source.startswith("## 3. Correspondences"):
+            cell.source = cell.source.replace("## 3. Correspondences", "## 3. Matches", 1)
+    nbformat.write(nb, str(tmp_path / "03_fusion.ipynb"))
+    with pytest.raises(S.SiteError, match=r"Fig\. 5 e-g .*no heading starting '3\. Correspondences"):
+        S.build_site(tmp_path)
