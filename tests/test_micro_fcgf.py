@@ -50,12 +50,27 @@ def test_batch_positives_agree_with_the_true_pose(monkeypatch):
     # Without rotations both crops sit in the camera frame around one centre, so each positive
     # pair's voxels are at most POS_RADIUS apart, plus a voxel of quantisation each side.
     monkeypatch.setattr(T, "random_rotation", lambda rng: np.eye(3))
-    batch = T.make_batch(_pair(), np.random.default_rng(0), crop_radius=0.5, scale_aug=0.0)
+    batch = T.make_batch(_pair(), np.random.default_rng(0), crop_radius=0.5, scale_aug=0.0, rotations="so3")
     assert batch is not None and len(batch["pos"]) > 100
     ia, ib = batch["pos"][:, 0], batch["pos"][:, 1]
     gap = np.linalg.norm((batch["coords_a"][ia] - batch["coords_b"][ib]) * T.VOXEL, axis=1)
     assert gap.max() <= T.POS_RADIUS + 2 * np.sqrt(3) * T.VOXEL
     assert np.median(gap) < 2 * T.VOXEL
+
+
+def test_inference_frames_keep_the_positives_rigid():
+    # Each side in its own frame: positives still match under one rigid motion, so distances
+    # between positives agree on both sides up to quantisation.
+    batch = T.make_batch(_pair(), np.random.default_rng(2), crop_radius=0.5, scale_aug=0.0)
+    pos = batch["pos"][np.random.default_rng(0).choice(len(batch["pos"]), 200, replace=False)]
+    a = batch["coords_a"][pos[:, 0]] * T.VOXEL
+    b = batch["coords_b"][pos[:, 1]] * T.VOXEL
+    da = np.linalg.norm(a[:, None] - a[None], axis=-1)
+    db = np.linalg.norm(b[:, None] - b[None], axis=-1)
+    assert np.abs(da - db).max() < 2 * T.POS_RADIUS + 4 * np.sqrt(3) * T.VOXEL
+    assert np.median(np.abs(da - db)) < 2 * T.VOXEL
+    # ... and the sides are not in one frame (the cloud side was turned about z).
+    assert np.median(np.linalg.norm(a - b, axis=1)) > 3 * T.VOXEL
 
 
 def test_hardest_contrastive_is_zero_for_perfect_features():

@@ -62,6 +62,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--warmup", type=int, default=50, help="linear learning-rate warm-up steps")
     p.add_argument("--crop-radius", type=float, default=1.0, help="metres around the crop's centre")
     p.add_argument("--scale-aug", type=float, default=0.1, help="image-side scale drawn from U(1-s, 1+s)")
+    p.add_argument("--rotations", choices=("inference", "so3"), default="inference",
+                   help="each side in its inference frame (cloud side turned about z), or FCGF's uniform SO(3)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--checkpoint-every", type=int, default=50)
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
@@ -168,9 +170,20 @@ def positive_pairs(a: np.ndarray, b: np.ndarray, radius: float = POS_RADIUS) -> 
     return np.stack([i, j], axis=1)
 
 
-def make_batch(pair: dict, rng: np.random.Generator, crop_radius: float, scale_aug: float) -> dict | None:
+def yaw(angle: float) -> np.ndarray:
+    """The rotation by ``angle`` radians about z."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def make_batch(pair: dict, rng: np.random.Generator, crop_radius: float, scale_aug: float,
+               rotations: str = "inference") -> dict | None:
     """One training batch of a pair: voxel coordinates of both crops (``coords_a``,
-    ``coords_b``) and their positive pairs; None when the crop holds no positive."""
+    ``coords_b``) and their positive pairs; None when the crop holds no positive.
+
+    ``rotations``: ``"inference"`` keeps the image side in its camera frame and the cloud side
+    in its own frame (as the pipeline hands them to FCGF), the latter turned about its z axis
+    at random; ``"so3"`` rotates each side uniformly at random (FCGF's 3DMatch recipe)."""
     from ..backends.fcgf import voxelize
 
     T = np.asarray(pair["T"], dtype=np.float64)
@@ -180,12 +193,19 @@ def make_batch(pair: dict, rng: np.random.Generator, crop_radius: float, scale_a
     if len(near) == 0:
         return None
     centre = a[near[rng.integers(len(near)), 0]]
+    in_b = np.linalg.norm(b_cam - centre, axis=1) <= crop_radius
     a = a[np.linalg.norm(a - centre, axis=1) <= crop_radius]
-    b_cam = b_cam[np.linalg.norm(b_cam - centre, axis=1) <= crop_radius]
+    b_cam = b_cam[in_b]
     scale = rng.uniform(1 - scale_aug, 1 + scale_aug) if scale_aug > 0 else 1.0
-    ra, rb = random_rotation(rng), random_rotation(rng)
+    if rotations == "so3":
+        ra, rb = random_rotation(rng), random_rotation(rng)
+        b_side = (b_cam - centre) @ rb.T
+    else:  # each side in its own frame, as at inference; the cloud side turned about its z axis
+        ra = np.eye(3)
+        b_own = np.asarray(pair["b"], dtype=np.float64)[in_b]
+        b_side = (b_own - b_own.mean(0)) @ yaw(rng.uniform(0, 2 * np.pi)).T
     coords_a, sel_a = voxelize(((a - centre) * scale) @ ra.T, VOXEL)
-    coords_b, sel_b = voxelize((b_cam - centre) @ rb.T, VOXEL)
+    coords_b, sel_b = voxelize(b_side, VOXEL)
     pos = positive_pairs(a[sel_a], b_cam[sel_b])
     if len(pos) == 0:
         return None
@@ -283,7 +303,7 @@ def main(argv=None) -> int:
 
     def draw(rng, p):
         while True:
-            batch = make_batch(p(rng), rng, args.crop_radius, args.scale_aug)
+            batch = make_batch(p(rng), rng, args.crop_radius, args.scale_aug, args.rotations)
             if batch is not None:
                 return batch
 
