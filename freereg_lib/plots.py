@@ -1,8 +1,13 @@
 """Figures the notebooks draw: depth maps, feature PCA, matches, error curves.
 
 Every function takes arrays, draws on a new or given Matplotlib figure, and returns it;
-``save`` writes it under ``figures/`` with a stable name. Titles carry the backend that
-produced the data, so a stub figure never passes for a real one.
+``save`` writes it under ``figures/`` with a stable name, as a compact PNG a reader can read at
+its natural size: at most :data:`MAX_WIDTH_PX` pixels wide (the dpi is lowered for a wide figure,
+and the layouts here stay about :data:`FIG_WIDTH_IN` inches wide so that the text stays legible) and
+at most :data:`MAX_BYTES` (256 colours, the gallery's ``site.compact_png``). Titles carry the short
+name of the backend that produced the data (the notebooks print its full description once), so a
+stub figure never passes for a real one. Axes of the percentage metrics (FMR, IR, RR) are
+labelled in %; depth panels (:func:`depth_panel`) carry a colour bar in metres.
 """
 from __future__ import annotations
 
@@ -11,6 +16,11 @@ from pathlib import Path
 import numpy as np
 
 FIGURES = Path(__file__).resolve().parent.parent / "figures"
+DPI = 110  # the dpi of a figure narrow enough to fit MAX_WIDTH_PX at it
+MAX_WIDTH_PX = 1000  # widest saved PNG, in pixels (what a notebook shows at its natural size)
+MAX_BYTES = 400_000  # largest saved PNG
+FIG_WIDTH_IN = 9.0  # the width the layouts here keep to (9 in at 110 dpi is 990 px)
+PERCENT_METRICS = ("FMR", "IR", "RR")  # metrics in % (IN is a count per pair)
 
 
 def _plt():
@@ -21,12 +31,66 @@ def _plt():
 
 
 def save(fig, name: str, folder: str | Path | None = None) -> Path:
-    """Write ``fig`` as ``<folder>/<name>.png`` (default ``figures/``); returns the path."""
+    """Write ``fig`` as ``<folder>/<name>.png`` (default ``figures/``); returns the path.
+
+    The dpi is :data:`DPI`, lowered when the figure's tight bounding box would be wider than
+    :data:`MAX_WIDTH_PX` at it; the PNG is then compacted like the README's gallery (256 colours,
+    ``optimize``; narrowed further only if it were still over :data:`MAX_BYTES`).
+    """
+    from .site import compact_png
+
     folder = Path(folder) if folder is not None else FIGURES
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"{name}.png"
-    fig.savefig(path, dpi=110, bbox_inches="tight")
+    fig.canvas.draw()  # lays out the text, so that the tight box is the saved one
+    pad = 0.1  # savefig's default pad_inches around the tight box
+    width_in = fig.get_tightbbox(fig.canvas.get_renderer()).width + 2 * pad
+    dpi = min(DPI, (MAX_WIDTH_PX - 2) / max(width_in, 1e-3))
+    raw = folder / f".{name}.raw.png"
+    try:
+        fig.savefig(raw, dpi=dpi, bbox_inches="tight", pad_inches=pad)
+        compact_png(raw, path, MAX_WIDTH_PX, MAX_BYTES)
+    finally:
+        raw.unlink(missing_ok=True)
     return path
+
+
+def _fit_width(width: float, height: float, max_width: float = FIG_WIDTH_IN) -> tuple[float, float]:
+    """``(width, height)`` scaled down together so that the width is at most ``max_width`` inches."""
+    k = min(1.0, max_width / width)
+    return width * k, height * k
+
+
+def metric_label(metric: str) -> str:
+    """An axis label for a metric: ``"IR (%)"`` for the percentage metrics, the name otherwise."""
+    base = str(metric).split("@")[0].split("_")[0]
+    return f"{metric} (%)" if base in PERCENT_METRICS else ("IN (correct matches per pair)" if metric == "IN" else str(metric))
+
+
+def _metric_axis(ax, metric: str, label: str | None = None) -> None:
+    """Label ``ax``'s y axis for ``metric``; a percentage metric's ticks read e.g. ``40%``."""
+    ax.set_ylabel(label or metric_label(metric))
+    if str(metric).split("@")[0].split("_")[0] in PERCENT_METRICS:
+        from matplotlib.ticker import PercentFormatter
+
+        ax.yaxis.set_major_formatter(PercentFormatter(xmax=100, decimals=0))
+
+
+class DepthPanel:
+    """A depth map (metres, 0 = no depth) for :func:`show_images` / :func:`image_grid`: drawn in
+    turbo from 0 to ``vmax`` (default its 98th percentile), empty pixels black, with a colour bar
+    in metres. Make one with :func:`depth_panel`."""
+
+    def __init__(self, depth: np.ndarray, vmax: float | None = None):
+        self.depth = np.asarray(depth, dtype=np.float64)
+        valid = self.depth > 0
+        self.vmax = float(vmax or (np.percentile(self.depth[valid], 98) if valid.any() else 1.0))
+        self.shape = self.depth.shape
+
+
+def depth_panel(depth: np.ndarray, vmax: float | None = None) -> DepthPanel:
+    """A depth map as a panel with a colour bar in metres (see :class:`DepthPanel`)."""
+    return DepthPanel(depth, vmax)
 
 
 def depth_image(depth: np.ndarray, vmax: float | None = None) -> np.ndarray:
@@ -45,13 +109,23 @@ def show_images(images: list, titles: list[str], suptitle: str = "", cols: int |
     plt = _plt()
     cols = cols or len(images)
     rows = int(np.ceil(len(images) / cols))
-    fig, axes = plt.subplots(rows, cols, figsize=(size * cols * 1.3, size * rows), squeeze=False)
+    fig, axes = plt.subplots(rows, cols, figsize=_fit_width(size * cols * 1.3, size * rows + (0.5 if suptitle else 0)),
+                             squeeze=False)
     return _fill_panels(fig, axes, images, titles, suptitle, colorbar=True)
 
 
 def _fill_panels(fig, axes, images: list, titles: list[str], suptitle: str, colorbar: bool):
-    """Draw ``images`` into the grid ``axes`` (2-D maps in turbo), blank the spare panels."""
+    """Draw ``images`` into the grid ``axes`` (2-D maps in turbo, :class:`DepthPanel` with a colour bar
+    in metres), blank the spare panels."""
+    plt = _plt()
     for ax, img, title in zip(axes.ravel(), images, titles):
+        if isinstance(img, DepthPanel):
+            cmap = plt.get_cmap("turbo").with_extremes(bad="black")
+            im = ax.imshow(np.where(img.depth > 0, img.depth, np.nan), cmap=cmap, vmin=0, vmax=img.vmax)
+            fig.colorbar(im, ax=ax, fraction=0.035, pad=0.02, label="depth (m)")
+            ax.set_title(title, fontsize=9)
+            ax.axis("off")
+            continue
         img = np.asarray(img)
         im = ax.imshow(img, cmap="turbo" if img.ndim == 2 else None)
         if colorbar and img.ndim == 2:
@@ -101,10 +175,11 @@ def draw_matches(
     """Image (left) and depth map (right) with match lines: green correct, red wrong."""
     plt = _plt()
     canvas = _match_canvas(image, depth_rgb)
-    fig, ax = plt.subplots(figsize=(12, 12 * canvas.shape[0] / canvas.shape[1] + 0.6))
+    w = FIG_WIDTH_IN
+    fig, ax = plt.subplots(figsize=(w, w * canvas.shape[0] / canvas.shape[1] + 0.6))
     ax.imshow(canvas)
     _match_lines(ax, uv_image, uv_depth, correct, image.shape[1], max_lines, seed)
-    ax.set_title(title)
+    ax.set_title(title, fontsize=10)
     ax.axis("off")
     fig.tight_layout()
     return fig
@@ -157,13 +232,13 @@ def error_curves(errors: dict[str, np.ndarray], xlabel: str, title: str, xmax: f
 def bar_compare(table, metric: str, label_col: str, title: str):
     """Grouped bars of ``metric`` for the paper and the re-run (columns ``<metric>_paper`` and ``<metric>``)."""
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(max(5, 0.6 * len(table) + 2), 3.6))
+    fig, ax = plt.subplots(figsize=(min(FIG_WIDTH_IN, max(5, 0.6 * len(table) + 2)), 3.6))
     x = np.arange(len(table))
     ax.bar(x - 0.2, table[f"{metric}_paper"], width=0.4, label="paper")
     ax.bar(x + 0.2, table[metric], width=0.4, label="re-run")
     ax.set_xticks(x, [str(v) for v in table[label_col]], rotation=30, ha="right")
-    ax.set_ylabel(metric)
-    ax.set_title(title)
+    _metric_axis(ax, metric)
+    ax.set_title(title, fontsize=10)
     ax.legend()
     fig.tight_layout()
     return fig
@@ -216,12 +291,14 @@ def depth_error_maps(image: np.ndarray, depth_gt: np.ndarray, depth_est: np.ndar
     mae = float(np.nanmean(np.abs(err))) if valid.any() else float("nan")
     vmax = float(np.percentile(gt[gt > 0], 98)) if (gt > 0).any() else 1.0
     lim = float(np.nanpercentile(np.abs(err), 98)) if valid.any() else 1.0
-    fig, axes = plt.subplots(1, 4, figsize=(17, 3.6))
+    h, w_ = np.asarray(image).shape[:2]
+    fig, axes = plt.subplots(2, 2, figsize=(FIG_WIDTH_IN, 2 * (FIG_WIDTH_IN / 2 * 0.85 * h / w_ + 0.4) + 0.5))
+    axes = axes.ravel()
     axes[0].imshow(image)
     axes[0].set_title("RGB image", fontsize=9)
-    for ax, d, lab in ((axes[1], gt, "true depth (m)"), (axes[2], est, f"{est_label} (m)")):
+    for ax, d, lab in ((axes[1], gt, "true depth"), (axes[2], est, est_label)):
         im = ax.imshow(np.where(d > 0, d, np.nan), cmap="turbo", vmin=0, vmax=vmax)
-        fig.colorbar(im, ax=ax, fraction=0.035)
+        fig.colorbar(im, ax=ax, fraction=0.035, label="depth (m)")
         ax.set_title(lab, fontsize=9)
     im = axes[3].imshow(err, cmap="RdBu_r", vmin=-lim, vmax=lim)
     fig.colorbar(im, ax=axes[3], fraction=0.035, label="error (m)")
@@ -288,7 +365,7 @@ def keypoint_feature_pca(image_a: np.ndarray, uv_a: np.ndarray, feats_a: np.ndar
         proj = (x - mean) @ vt[:3].T
         lo, hi = np.percentile(proj, 1, axis=0), np.percentile(proj, 99, axis=0)
         colours[has] = np.clip((proj - lo) / (hi - lo + 1e-8), 0, 1)
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6))
+    fig, axes = plt.subplots(1, 2, figsize=(FIG_WIDTH_IN, 3.7))
     parts = ((image_a, uv_a, slice(0, len(fa))), (image_b, uv_b, slice(len(fa), len(flat))))
     for ax, (img, uv, sl), sub in zip(axes, parts, titles):
         uv = np.asarray(uv, dtype=np.float64)
@@ -334,7 +411,7 @@ def ddim_timeline(timesteps: np.ndarray, n_run: int, t_feature: int, title: str 
     (filled), then one feature pass at ``t_feature`` (star); the rest are never run (hollow)."""
     plt = _plt()
     ts = np.asarray(timesteps)
-    fig, ax = plt.subplots(figsize=(10, 2.8))
+    fig, ax = plt.subplots(figsize=(FIG_WIDTH_IN, 2.8))
     run, rest = ts[:n_run], ts[n_run:]
     ax.scatter(run, np.zeros(len(run)), s=60, color="C0", label=f"{n_run} guided DDIM steps")
     ax.scatter(rest, np.zeros(len(rest)), s=60, facecolors="none", edgecolors="0.5",
@@ -355,15 +432,20 @@ def ddim_timeline(timesteps: np.ndarray, n_run: int, t_feature: int, title: str 
 
 def metric_vs_param(table, x: str, metrics: list[str], group: str, title: str = "",
                     xlabel: str | None = None, ylabels: dict | None = None):
-    """One panel per metric: ``metric`` against ``x``, one line per value of ``group``."""
+    """One panel per metric: ``metric`` against ``x``, one line per value of ``group`` (up to three
+    panels a row)."""
     plt = _plt()
-    fig, axes = plt.subplots(1, len(metrics), figsize=(5 * len(metrics), 3.8), squeeze=False)
-    for ax, m in zip(axes[0], metrics):
+    cols = min(len(metrics), 3)
+    rows = int(np.ceil(len(metrics) / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(min(FIG_WIDTH_IN, 4.2 * cols), 3.4 * rows + 0.3), squeeze=False)
+    for ax in axes.ravel()[len(metrics):]:
+        ax.axis("off")
+    for ax, m in zip(axes.ravel(), metrics):
         for k, (g, sub) in enumerate(table.groupby(group, sort=False)):
             sub = sub.sort_values(x)
             ax.plot(sub[x], sub[m], marker="o", color=f"C{k}", label=str(g))
-        ax.set_xlabel(xlabel or x)
-        ax.set_ylabel((ylabels or {}).get(m, m))
+        ax.set_xlabel(xlabel or x, fontsize=9)
+        _metric_axis(ax, m, (ylabels or {}).get(m))
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     if title:
@@ -389,7 +471,7 @@ def match_panels(image: np.ndarray, depth_rgb: np.ndarray, panels: list[dict], s
     canvas = _match_canvas(image, depth_rgb)
     n = len(panels)
     nrows = int(np.ceil(n / ncols))
-    pw = 12.0 / max(ncols, 1) if ncols > 1 else 10.0
+    pw = FIG_WIDTH_IN / max(ncols, 1)
     ph = pw * canvas.shape[0] / canvas.shape[1] + 0.5
     fig, axes = plt.subplots(nrows, ncols, figsize=(pw * ncols, ph * nrows + 0.4), squeeze=False)
     for ax, panel in zip(axes.ravel(), panels):
@@ -411,14 +493,14 @@ def paper_vs_rerun(table, x: str, metrics: list[str], title: str, xlabel: str | 
     against the knob ``x`` (a column of ``table``, e.g. the output of ``paper.side_by_side``)."""
     plt = _plt()
     t = table.sort_values(x)
-    fig, axes = plt.subplots(1, len(metrics), figsize=(4.2 * len(metrics), 3.6), squeeze=False)
+    fig, axes = plt.subplots(1, len(metrics), figsize=(min(FIG_WIDTH_IN, 3.6 * len(metrics)), 3.4), squeeze=False)
     for ax, m in zip(axes.ravel(), metrics):
         if f"{m}_paper" in t.columns:
             ax.plot(t[x], t[f"{m}_paper"], "o--", color="0.35", label="paper (3DMatch)")
         if m in t.columns:
             ax.plot(t[x], t[m], "o-", color="tab:blue", label=ours_label)
         ax.set_xlabel(xlabel or x)
-        ax.set_ylabel(m)
+        _metric_axis(ax, m)
         ax.set_title(m)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
@@ -429,18 +511,25 @@ def paper_vs_rerun(table, x: str, metrics: list[str], title: str, xlabel: str | 
 
 def similarity_maps(image: np.ndarray, uv_query: np.ndarray, depth_rgb: np.ndarray,
                     uv_depth: np.ndarray, sims: dict, uv_true: np.ndarray | None = None,
-                    suptitle: str = "", size: float = 3.2, cbar_label: str = "similarity"):
+                    suptitle: str = "", size: float = 3.2, cbar_label: str = "similarity", cols: int = 2):
     """How one image keypoint's descriptor resembles every depth keypoint's.
 
     Left: the image with the query pixel ``uv_query (2,)``. Then one panel per entry of
     ``sims`` (label -> ``(M,)`` similarities of the query to the depth keypoints
     ``uv_depth (M, 2)``), drawn as coloured dots on the (dimmed) depth map; a black-ringed
     star marks each panel's best match, a cross ``uv_true`` (the true partner), if given.
+    The panels fill a grid ``cols`` wide.
     """
     plt = _plt()
     n = 1 + len(sims)
-    fig, axes = plt.subplots(1, n, figsize=(size * 1.35 * n, size + 0.4), squeeze=False)
+    cols = max(1, min(cols, n))
+    rows = int(np.ceil(n / cols))
+    h, w = np.asarray(image).shape[:2]
+    pw = min(FIG_WIDTH_IN / cols, size * 1.35)
+    fig, axes = plt.subplots(rows, cols, figsize=(pw * cols, rows * (pw / 1.2 * h / w + 0.45) + 0.5), squeeze=False)
     axes = axes.ravel()
+    for ax in axes[n:]:
+        ax.axis("off")
     axes[0].imshow(image)
     axes[0].plot(uv_query[0], uv_query[1], marker="*", ms=16, color="yellow", mec="black")
     axes[0].set_title("image, query keypoint", fontsize=9)
@@ -463,10 +552,12 @@ def similarity_maps(image: np.ndarray, uv_query: np.ndarray, depth_rgb: np.ndarr
     return fig
 
 
-def image_grid(images: list, titles: list[str], suptitle: str = "", cols: int = 2, width: float = 12.0):
+def image_grid(images: list, titles: list[str], suptitle: str = "", cols: int = 2, width: float = FIG_WIDTH_IN):
     """Like :func:`show_images` but each panel keeps its image's aspect ratio (wide LiDAR views
-    stay readable); RGB arrays as they are, 2-D maps with the turbo colour map."""
+    stay readable); RGB arrays as they are, 2-D maps with the turbo colour map, a
+    :class:`DepthPanel` with a colour bar in metres. ``width`` is capped at :data:`FIG_WIDTH_IN`."""
     plt = _plt()
+    width = min(width, FIG_WIDTH_IN)
     rows = int(np.ceil(len(images) / cols))
     aspect = max(np.asarray(img).shape[0] / np.asarray(img).shape[1] for img in images)
     panel_w = width / cols
@@ -487,22 +578,26 @@ def metric_bars(table, metrics: list[str], label_col: str, title: str, ours_labe
     plt = _plt()
     labels = [str(v) for v in table[label_col]]
     x = np.arange(len(labels))
-    fig, axes = plt.subplots(1, len(metrics), figsize=(max(3.2, 0.75 * len(labels) + 1.6) * len(metrics), 3.9),
-                             squeeze=False)
-    for ax, m in zip(axes[0], metrics):
+    cols = 1 if len(metrics) == 1 else 2
+    rows = int(np.ceil(len(metrics) / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(min(FIG_WIDTH_IN, max(3.2, 0.75 * len(labels) + 1.6) * cols),
+                                                  3.3 * rows + 0.6), squeeze=False)
+    for ax in axes.ravel()[len(metrics):]:
+        ax.axis("off")
+    for ax, m in zip(axes.ravel(), metrics):
         for offset, col, lab, colour in ((-0.2, f"{m}_paper", paper_label, "0.6"), (0.2, m, ours_label, "tab:blue")):
             vals = np.asarray(table[col], dtype=np.float64) if col in table.columns else np.full(len(x), np.nan)
             ax.bar(x + offset, np.nan_to_num(vals), width=0.4, label=lab, color=colour)
             for k in np.nonzero(~np.isfinite(vals))[0]:
                 ax.text(x[k] + offset, 0, "n/a", ha="center", va="bottom", fontsize=7, rotation=90)
         ax.set_xticks(x, labels, rotation=30, ha="right", fontsize=8)
-        ax.set_ylabel(m)
+        _metric_axis(ax, m)
         ax.set_title(m)
         ax.grid(axis="y", alpha=0.3)
     handles, names = axes[0][0].get_legend_handles_labels()
     fig.legend(handles, names, loc="lower center", ncol=2, fontsize=8, frameon=False)
     fig.suptitle(title, fontsize=10)
-    fig.tight_layout(rect=(0, 0.07, 1, 1))  # room for the legend under the panels
+    fig.tight_layout(rect=(0, 0.05 / rows, 1, 1))  # room for the legend under the panels
     return fig
 
 
