@@ -559,7 +559,8 @@ def image_grid(images: list, titles: list[str], suptitle: str = "", cols: int = 
     plt = _plt()
     width = min(width, FIG_WIDTH_IN)
     rows = int(np.ceil(len(images) / cols))
-    aspect = max(np.asarray(img).shape[0] / np.asarray(img).shape[1] for img in images)
+    shapes = [img.shape if isinstance(img, DepthPanel) else np.asarray(img).shape for img in images]
+    aspect = max(sh[0] / sh[1] for sh in shapes)
     panel_w = width / cols
     fig, axes = plt.subplots(rows, cols, figsize=(width, rows * (panel_w * aspect + 0.45) + (0.4 if suptitle else 0)),
                              squeeze=False)

@@ -88,6 +88,7 @@ def test_metric_axes_in_percent_and_depth_colour_bars_in_metres():
     assert ax.get_ylabel() == "IR (%)"
     assert all(lab.get_text().endswith("%") for lab in ax.get_yticklabels() if lab.get_text())
     plt.close(fig)
-    fig = plots.show_images([np.zeros((10, 10, 3)), plots.depth_panel(np.full((10, 10), 2.0))], ["a", "b"])
-    assert [a.get_ylabel() for a in fig.axes if a.get_label() == "<colorbar>"] == ["depth (m)"]
-    plt.close(fig)
+    for draw in (plots.show_images, plots.image_grid):
+        fig = draw([np.zeros((10, 20, 3)), plots.depth_panel(np.full((10, 20), 2.0))], ["a", "b"])
+        assert [a.get_ylabel() for a in fig.axes if a.get_label() == "<colorbar>"] == ["depth (m)"]
+        plt.close(fig)
