@@ -249,50 +249,74 @@ class RealBackend(_TorchBackend):
 
 
 class MicroBackend(_TorchBackend):
-    """The micro models (:mod:`freereg_lib.micro`): SD-layout diffusion models trained here on
-    the synthetic rooms, run by the same feature code as the ``real`` backend.
+    """The micro models (:mod:`freereg_lib.micro`): SD-layout diffusion models and a ZoeDepth
+    trained here on the synthetic rooms, run by the same feature and depth code as the ``real``
+    backend.
 
-    The weights are committed in the package (``freereg_lib/micro/weights``; model card
-    beside them). The VAE halves the 128 x 192 input twice, so the nine decoder layers are
-    4 x 6, 8 x 12 and 16 x 24 (strides 32, 16, 8 instead of SD's 64, 32, 16). Monocular depth
-    is the stub's (the true depth with its designed error) until a micro depth model exists:
-    it needs ``depth_gt``, so this backend runs on synthetic pairs.
+    The weights are committed in the package (``freereg_lib/micro/weights``, the depth model in
+    its ``depth/`` folder; model cards beside them). The VAE halves the 128 x 192 input twice,
+    so the nine decoder layers are 4 x 6, 8 x 12 and 16 x 24 (strides 32, 16, 8 instead of SD's
+    64, 32, 16). Monocular depth is the micro ZoeDepth (:mod:`freereg_lib.micro.depth`:
+    transformers' ``ZoeDepthForDepthEstimation`` with a 4-layer BEiT, run through
+    :class:`~.zoedepth.ZoeDepthEstimator` with padding and flip averaging as the real one), so
+    it needs no ``depth_gt``; ``mono_depth="stub"`` keeps the stub's designed error instead (the
+    true depth with a scale error and smooth distortion; it needs ``depth_gt``).
 
     Args:
         cfg: the config (indoor: the micro models were trained on rooms only).
-        device, dtype: see :func:`resolve_device`.
+        device, dtype: see :func:`resolve_device` (ZoeDepth always runs in float32).
         weights_dir: another folder of micro weights (default: ``$FREEREG_MICRO_WEIGHTS``, else
             the committed ones), e.g. the ``--export`` folder of a retraining.
-        random_weights: the same architecture with seeded random weights instead (zero
-            convolutions drawn small, as the tiny backend's, so the hint still acts): the
-            baseline that shows what the training contributes.
+        random_weights: the same architectures with seeded random weights instead (zero
+            convolutions drawn small, as the tiny backend's, so the hint still acts; the depth
+            model Kaiming-initialised as :func:`freereg_lib.micro.depth.build`): the baseline
+            that shows what the training contributes.
         seed: the random weights' seed (default ``cfg.seed``).
+        mono_depth: ``"micro"`` (default, the trained micro ZoeDepth) or ``"stub"`` (the stub's
+            designed error, for comparison).
+        depth_weights_dir: the micro ZoeDepth folder (default: ``weights_dir/depth`` when it
+            holds one, else the committed ``freereg_lib/micro/weights/depth``).
     """
 
     name = "micro"
     strides = (32, 32, 32, 16, 16, 16, 8, 8, 8)
+    MONO_DEPTHS = ("micro", "stub")
 
     def __init__(self, cfg, device=None, dtype=None, weights_dir=None, random_weights: bool = False,
-                 seed: int | None = None):
+                 seed: int | None = None, mono_depth: str = "micro", depth_weights_dir=None):
+        from ..micro import depth as MD
         from ..micro import models as M
 
         if getattr(cfg, "outdoor", False):
             raise ValueError("the micro models were trained on the synthetic indoor world only; "
                              "use backend='stub' (or 'real' with weights) for outdoor scenes")
+        if mono_depth not in self.MONO_DEPTHS:
+            raise ValueError(f"mono_depth must be one of {self.MONO_DEPTHS}, got {mono_depth!r}")
         super().__init__(cfg, device, dtype, M.MICRO_RESIZE_HW)
         weights_dir = weights_dir or os.environ.get("FREEREG_MICRO_WEIGHTS") or None
         self.weights_dir = Path(weights_dir) if weights_dir else M.WEIGHTS_DIR
         self.random_weights = bool(random_weights)
         self.seed = cfg.seed if seed is None else int(seed)
+        self.mono_kind = mono_depth
         if not self.random_weights and M.missing_parts(self.weights_dir):
             raise MissingWeightsError(
                 f"micro weights missing in {self.weights_dir}: {', '.join(M.missing_parts(self.weights_dir))}; "
                 "retrain them with `python -m freereg_lib.micro.train_diffusion --export "
                 f"{self.weights_dir}`")
+        if depth_weights_dir is None:
+            own = self.weights_dir / "depth"
+            depth_weights_dir = own if not MD.missing_files(own) else MD.WEIGHTS_DIR
+        self.depth_weights_dir = Path(depth_weights_dir)
+        if mono_depth == "micro" and not self.random_weights and MD.missing_files(self.depth_weights_dir):
+            raise MissingWeightsError(
+                f"micro depth weights missing in {self.depth_weights_dir}: "
+                f"{', '.join(MD.missing_files(self.depth_weights_dir))}; retrain them with "
+                f"`python -m freereg_lib.micro.train_depth --export {self.depth_weights_dir}` "
+                "(or pass mono_depth='stub')")
         self._stub = None
-        kind = "random weights, same architecture" if self.random_weights else "trained on synthetic rooms"
-        self.label = (f"micro backend (SD-layout diffusion models, {kind}; "
-                      "monocular depth: the stub's designed error)")
+        kind = "random weights, same architectures" if self.random_weights else "trained on synthetic rooms"
+        mono = "the micro ZoeDepth" if mono_depth == "micro" else "the stub's designed error"
+        self.label = f"micro backend (SD-layout diffusion models + ZoeDepth, {kind}; monocular depth: {mono})"
 
     def layer_shapes(self) -> list[tuple[int, int]]:
         h, w = self.resize_hw
@@ -314,15 +338,30 @@ class MicroBackend(_TorchBackend):
         return DiffusionFeatures(*nets[:3], nets[3], mods["tokenizer"], self.cfg, self.device,
                                  self.dtype, self.resize_hw)
 
+    def _build_zoe(self):
+        from ..micro import depth as MD
+
+        if self.random_weights:
+            return MD.estimator(MD.build(self.seed), self.device)
+        return MD.load(self.depth_weights_dir, self.device)
+
     def mono_depth(self, image: np.ndarray, depth_gt: np.ndarray | None = None) -> np.ndarray:
+        """Metric depth ``(H, W)`` of ``image``: the micro ZoeDepth (``depth_gt`` unused), or
+        the stub's designed error of ``depth_gt`` with ``mono_depth="stub"``."""
+        if self.mono_kind == "micro":
+            return self.zoe(image)
         if self._stub is None:
             from .stub import StubBackend
 
             self._stub = StubBackend(self.cfg)
         return self._stub.mono_depth(image, depth_gt)
 
-    # Per image, as the base class does: the torch backends' batched ZoeDepth is not used here.
-    mono_depth_batch = Backend.mono_depth_batch
+    def mono_depth_batch(self, images, depth_gts=None) -> list[np.ndarray]:
+        """The micro ZoeDepth on all ``images`` in one call per size (flips included), or the
+        stub per image."""
+        if self.mono_kind == "micro":
+            return self.zoe.batch(list(images))
+        return Backend.mono_depth_batch(self, images, depth_gts)
 
     def fcgf_model(self):
         """The micro FCGF (``weights_dir/fcgf``, else the committed one; loaded by the official

@@ -1,0 +1,132 @@
+"""The micro monocular depth (freereg_lib.micro.depth / train_depth): training lowers the loss,
+resuming is bit-identical, the committed weights load and predict metric depth without the true
+depth, and the weights folder round-trips. CI never trains (a few steps on a tiny batch only)."""
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("transformers")
+
+from freereg_lib.micro import depth as MD  # noqa: E402
+from freereg_lib.micro import train_depth as T  # noqa: E402
+
+
+def _views(n=5, seed=0):
+    """Tiny stand-in views: coloured bands whose depth follows the colour (learnable)."""
+    rng = np.random.default_rng(seed)
+    h, w = 128, 192
+    rgb = np.zeros((n, 3, h, w), np.uint8)
+    depth = np.zeros((n, 120, 160), np.float32)
+    for k in range(n):
+        split = int(rng.integers(40, 150))
+        near, far = rng.uniform(0.8, 2.0), rng.uniform(3.0, 5.0)
+        rgb[k, :, :, :split] = np.array([200, 60, 60])[:, None, None]
+        rgb[k, :, :, split:] = np.array([60, 60, 200])[:, None, None]
+        cut = int(split * 160 / w)
+        depth[k, :, :cut], depth[k, :, cut:] = near, far
+    return rgb, depth
+
+
+def _args(tmp, steps, **kw):
+    a = dict(steps=steps, batch=4, lr=2e-3, warmup=1, l1_weight=1.0, seed=0, checkpoint_every=2)
+    a.update(kw)
+    return argparse.Namespace(**a)
+
+
+@pytest.fixture(scope="module")
+def data():
+    torch.set_num_threads(1)
+    rgb, depth = _views()
+    pix = T.pixel_values(rgb, progress=False)
+    assert pix.shape == (5, 3) + MD.INPUT_HW  # a 480 x 640 image is processed at 96 x 128
+    return T.Data(pix, depth, views_per_scene=1)
+
+
+def test_resize_matrices_are_the_estimator_post_processing():
+    import torch.nn.functional as F
+
+    A, B = T.resize_matrices(MD.INPUT_HW)
+    ph, pw = T.pad_size()
+    d = torch.rand(2, *MD.INPUT_HW) * 5
+    full = F.interpolate(d[:, None], size=(480 + 2 * ph, 640 + 2 * pw), mode="bicubic", align_corners=False)
+    full = full[:, 0, ph:ph + 480, pw:pw + 640][:, ::4, ::4]
+    assert torch.allclose(A @ d @ B.T, full, atol=1e-4)
+
+
+def test_training_steps_lower_the_loss(data, tmp_path):
+    model = MD.build(0)
+    log = T.train(model, data, _args(tmp_path, 8, checkpoint_every=100), tmp_path, progress=False)
+    loss = log["loss"]  # batch 4 of the 4 training views: nearly one fixed batch
+    assert len(loss) == 8 and np.mean(loss[-2:]) < 0.85 * np.mean(loss[:2]), loss
+
+
+def test_resume_is_bit_identical(data, tmp_path, monkeypatch):
+    args = _args(tmp_path, 4, batch=2)
+    straight = MD.build(0)
+    T.train(straight, data, args, tmp_path / "a", progress=False)
+
+    calls = {"n": 0}
+    real_loss = T.depth_loss
+
+    def interrupted(*a, **k):
+        calls["n"] += 1
+        if calls["n"] == 3:  # after the step-2 checkpoint
+            raise KeyboardInterrupt
+        return real_loss(*a, **k)
+
+    monkeypatch.setattr(T, "depth_loss", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        T.train(MD.build(0), data, args, tmp_path / "b", progress=False)
+    monkeypatch.setattr(T, "depth_loss", real_loss)
+    resumed = MD.build(0)
+    log = T.train(resumed, data, args, tmp_path / "b", progress=False)
+    assert len(log["loss"]) == 4
+    a, b = straight.state_dict(), resumed.state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_save_load_round_trip(tmp_path):
+    model = MD.build(1).eval()
+    MD.save(model, tmp_path)
+    assert not MD.missing_files(tmp_path)
+    est = MD.load(tmp_path)
+    img = (np.random.default_rng(0).random((96, 128, 3)) * 255).astype(np.uint8)
+    ref = MD.estimator(model.to(torch.float16).to(torch.float32))(img)  # float16 storage
+    out = est(img)
+    assert out.shape == (96, 128)
+    np.testing.assert_allclose(out, ref, atol=1e-4)
+    from freereg_lib.backends.base import MissingWeightsError
+
+    with pytest.raises(MissingWeightsError, match="train_depth"):
+        MD.load(tmp_path / "nowhere")
+
+
+def test_micro_backend_depth_without_depth_gt(tmp_path):
+    from freereg_lib.backends import MissingWeightsError, get_backend
+    from freereg_lib.config import FreeRegConfig
+
+    if MD.missing_files():
+        pytest.fail(f"committed micro depth weights missing: {MD.missing_files()}")
+    cfg = FreeRegConfig()
+    backend = get_backend("micro", cfg, device="cpu")
+    assert "micro ZoeDepth" in backend.label
+    # A room-like image: light wall above a darker floor.
+    img = np.zeros((480, 640, 3), np.uint8)
+    img[:300], img[300:] = (190, 180, 170), (110, 90, 70)
+    d = backend.mono_depth(img)  # no depth_gt
+    assert d.shape == (480, 640) and np.isfinite(d).all()
+    assert MD.MIN_DEPTH <= d.min() and d.max() <= MD.MAX_DEPTH and d.std() > 0.01
+    batch = backend.mono_depth_batch([img, img[:, ::-1].copy()])
+    np.testing.assert_allclose(batch[0], d, atol=1e-4)
+    np.testing.assert_allclose(batch[1], d[:, ::-1], atol=1e-3)  # flip averaging is symmetric
+    rand = get_backend("micro", cfg, device="cpu", random_weights=True).mono_depth(img)
+    assert np.abs(rand - d).mean() > 0.05
+    stub = get_backend("micro", cfg, device="cpu", mono_depth="stub")
+    with pytest.raises(ValueError, match="depth_gt"):
+        stub.mono_depth(img)
+    with pytest.raises(MissingWeightsError, match="train_depth"):
+        get_backend("micro", cfg, device="cpu", depth_weights_dir=tmp_path)
