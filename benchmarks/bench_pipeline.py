@@ -17,6 +17,10 @@ Modes
          default is the paper's float32); the stub chain and the
          matching micro-benchmark (CPU and CUDA) on the same machine. Random weights give
          meaningless features, so the solvers there run all their iterations: a worst case.
+    micro The whole chain with the ``micro`` backend (the models trained here: diffusion,
+         monocular depth, FCGF) on synthetic indoor pairs of 480 x 640, once with FPFH and
+         once with the micro FCGF as geometric features, both solvers at 50k iterations:
+         issue 15's "one micro FreeReg pair" on this machine.
     ci   Tiny sizes (a 96 x 128 pair, 500 RANSAC iterations, a 64 x 64 tiny backend with 5
          DDIM steps, 1k x 1k matching), one repetition, torch on one thread: a check that
          the script works, in seconds. Its numbers mean nothing.
@@ -624,7 +628,7 @@ def format_table(results: list[dict], device: str, gpu: bool) -> str:
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--mode", choices=("cpu", "gpu", "ci"), default="cpu")
+    p.add_argument("--mode", choices=("cpu", "gpu", "ci", "micro"), default="cpu")
     p.add_argument("--pairs", type=int, default=1, help="synthetic indoor pairs (seeds 0..N-1)")
     p.add_argument("--reps", type=int, default=None,
                    help="timed repetitions per pair (default: 3 cpu/gpu, 1 ci)")
@@ -691,7 +695,7 @@ def main(argv=None) -> int:
         return 2
     cuda = device.startswith("cuda")
 
-    image_size = (96, 128) if ci else (512, 704)
+    image_size = (96, 128) if ci else (480, 640) if args.mode == "micro" else (512, 704)
     overrides = dict(ransac_iters=500, keypoint_grid=(12, 16), ddim_steps=5) if ci else {}
     if args.ddim_steps is not None:
         overrides["ddim_steps"] = args.ddim_steps
@@ -726,6 +730,28 @@ def main(argv=None) -> int:
 
     results: list[dict] = []
     notes: list[str] = []
+
+    if args.mode == "micro":
+        for geo in ("fpfh", "fcgf"):
+            c = cfg.override(geometric=geo)
+            micro = get_backend("micro", c)
+            res = measure_chain(f"micro chain ({geo})", pairs, micro, c, variants, reps, warmup)
+            res["device"] = "cpu"
+            results.append(res)
+            print(f"... micro chain ({geo}) done ({statistics.median(res['total']):.2f} s per pair)", flush=True)
+        notes.append(f"micro backend: {micro.label}; diffusion input {micro.resize_hw[0]} x {micro.resize_hw[1]}, "
+                     f"DDIM {cfg.ddim_steps} steps")
+        print()
+        print(format_table(results, device, gpu))
+        for note in notes:
+            print(f"note: {note}")
+        for r in results:
+            print(f"{r['label']}, one pair end to end (run_pair, {_variants(r['variants'])}): "
+                  f"{statistics.median(r['total']):.2f} s median (min {min(r['total']):.2f}, max {max(r['total']):.2f})")
+        if args.json:
+            with open(args.json, "w") as fh:
+                json.dump({"device": info, "notes": notes, "results": results}, fh, indent=1, default=str)
+        return 0
 
     # 1. The stub chain (CPU).
     stub = get_backend("stub", cfg, **({"resize_hw": (128, 192)} if ci else {}))

@@ -154,6 +154,13 @@ def fcgf_features(points: np.ndarray, voxel: float, cfg=None, checkpoint=None, m
     return F.fcgf_features(points, voxel, model)
 
 
+def default_method(backend_name: str) -> str:
+    """The geometric features a notebook uses when its ``geometric_method`` is None: the micro
+    backend's trained FCGF (``freereg_lib/micro/weights/fcgf``) with ``backend="micro"``, FPFH
+    (Open3D, no weights) with the others, whose FCGF needs the official checkpoint."""
+    return "fcgf" if backend_name == "micro" else "fpfh"
+
+
 def geometric_features(points: np.ndarray, cfg, method: str | None = None,
                        camera_location=(0.0, 0.0, 0.0), at: np.ndarray | None = None,
                        **kw) -> tuple[np.ndarray, np.ndarray]:

@@ -130,3 +130,19 @@ def test_micro_backend_depth_without_depth_gt(tmp_path):
         stub.mono_depth(img)
     with pytest.raises(MissingWeightsError, match="train_depth"):
         get_backend("micro", cfg, device="cpu", depth_weights_dir=tmp_path)
+
+
+def test_micro_backend_dials_the_stub_error_for_a_controlled_sweep():
+    from freereg_lib import synthetic
+    from freereg_lib.backends import get_backend
+    from freereg_lib.config import FreeRegConfig
+
+    cfg = FreeRegConfig()
+    pair = synthetic.make_pair("indoor", seed=3, image_size=(120, 160))
+    valid = pair.depth_gt > 0
+    for mae in (0.1, 0.5):
+        be = get_backend("micro", cfg, mono_depth="stub", mono_mae=mae)
+        d = be.mono_depth(pair.image, depth_gt=pair.depth_gt)
+        assert np.mean(np.abs(d - pair.depth_gt)[valid]) == pytest.approx(mae, rel=0.05)
+    with pytest.raises(ValueError, match="mono_depth='stub'"):
+        get_backend("micro", cfg, mono_mae=0.3)

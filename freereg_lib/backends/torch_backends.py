@@ -276,6 +276,8 @@ class MicroBackend(_TorchBackend):
             designed error, for comparison).
         depth_weights_dir: the micro ZoeDepth folder (default: ``weights_dir/depth`` when it
             holds one, else the committed ``freereg_lib/micro/weights/depth``).
+        mono_mae: with ``mono_depth="stub"``, the stub's error size in metres (its
+            ``mono_mae``; a controlled sweep of the depth error, notebook 02).
     """
 
     name = "micro"
@@ -283,7 +285,8 @@ class MicroBackend(_TorchBackend):
     MONO_DEPTHS = ("micro", "stub")
 
     def __init__(self, cfg, device=None, dtype=None, weights_dir=None, random_weights: bool = False,
-                 seed: int | None = None, mono_depth: str = "micro", depth_weights_dir=None):
+                 seed: int | None = None, mono_depth: str = "micro", depth_weights_dir=None,
+                 mono_mae: float | None = None):
         from ..micro import depth as MD
         from ..micro import models as M
 
@@ -298,6 +301,9 @@ class MicroBackend(_TorchBackend):
         self.random_weights = bool(random_weights)
         self.seed = cfg.seed if seed is None else int(seed)
         self.mono_kind = mono_depth
+        if mono_mae is not None and mono_depth != "stub":
+            raise ValueError("mono_mae sets the stub's designed depth error: pass mono_depth='stub' with it")
+        self.mono_mae = mono_mae
         if not self.random_weights and M.missing_parts(self.weights_dir):
             raise MissingWeightsError(
                 f"micro weights missing in {self.weights_dir}: {', '.join(M.missing_parts(self.weights_dir))}; "
@@ -353,7 +359,7 @@ class MicroBackend(_TorchBackend):
         if self._stub is None:
             from .stub import StubBackend
 
-            self._stub = StubBackend(self.cfg)
+            self._stub = StubBackend(self.cfg, mono_mae=self.mono_mae)
         return self._stub.mono_depth(image, depth_gt)
 
     def mono_depth_batch(self, images, depth_gts=None) -> list[np.ndarray]:

@@ -56,7 +56,7 @@ def write_card(folder: Path = M.WEIGHTS_DIR) -> Path:
     plot_losses(training, folder / "loss_curves.png")
     a = training["arguments"]
     st = training["stages"]
-    size_mb = sum(f.stat().st_size for f in folder.rglob("*.safetensors")) / 1e6
+    size_mb = sum(f.stat().st_size for part in M.PARTS for f in (folder / part).glob("*.safetensors")) / 1e6
     lines = [
         "# Micro diffusion models: model card",
         "",
