@@ -10,6 +10,8 @@
 """
 from __future__ import annotations
 
+from collections import OrderedDict
+
 import numpy as np
 
 FPFH_DIM = 33
@@ -151,7 +153,33 @@ def fcgf_features(points: np.ndarray, voxel: float, cfg=None, checkpoint=None, m
                 device = "cuda" if torch.cuda.is_available() else "cpu"
             _FCGF_CACHE[key] = F.load_fcgf(path, device=device)
         model = _FCGF_CACHE[key]
-    return F.fcgf_features(points, voxel, model)
+    return _recent_features(points, voxel, model, lambda: F.fcgf_features(points, voxel, model))
+
+
+_RECENT: "OrderedDict[tuple, tuple[np.ndarray, np.ndarray]]" = OrderedDict()
+_RECENT_SIZE = 8
+
+
+def _recent_features(points: np.ndarray, voxel: float, model, compute):
+    """FCGF features of a cloud seen in one of the last few calls, from memory: a sweep that
+    changes only the image side (notebook 02's depth errors, the fusion weights) asks for the
+    same depth-side cloud again, and FCGF on a room costs seconds on a CPU. Keyed by the
+    cloud's bytes, the voxel and the network (its object and parameter versions), so a
+    changed input or trained network is never served stale features."""
+    import hashlib
+
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    version = tuple(int(p._version) for p in model.parameters())
+    key = (hashlib.blake2b(pts.tobytes(), digest_size=16).digest(), pts.shape, float(voxel), id(model), version)
+    if key in _RECENT:
+        _RECENT.move_to_end(key)
+        down, feats = _RECENT[key]
+        return down.copy(), feats.copy()
+    down, feats = compute()
+    _RECENT[key] = (down.copy(), feats.copy())
+    while len(_RECENT) > _RECENT_SIZE:
+        _RECENT.popitem(last=False)
+    return down, feats
 
 
 def default_method(backend_name: str) -> str:
@@ -163,7 +191,7 @@ def default_method(backend_name: str) -> str:
 
 def geometric_features(points: np.ndarray, cfg, method: str | None = None,
                        camera_location=(0.0, 0.0, 0.0), at: np.ndarray | None = None,
-                       **kw) -> tuple[np.ndarray, np.ndarray]:
+                       backend=None, **kw) -> tuple[np.ndarray, np.ndarray]:
     """Features of a cloud with the method of ``cfg.geometric`` (or ``method``).
 
     ``"fpfh"``: :func:`fpfh_features` with voxel ``cfg.fpfh_voxel`` (``cfg.voxel_size`` when
@@ -171,7 +199,9 @@ def geometric_features(points: np.ndarray, cfg, method: str | None = None,
     feature radius ``cfg.fpfh_radius_factor * voxel``; ``at``: compute only the features
     :func:`pixel_features` will read for these points (see :func:`fpfh_features`).
     ``"fcgf"``: :func:`fcgf_features` at voxel ``cfg.voxel_size`` (``kw``: ``checkpoint``,
-    ``model``, ``device``); a missing checkpoint raises ``MissingWeightsError``.
+    ``model``, ``device``); a missing checkpoint raises ``MissingWeightsError``. ``backend``:
+    its :meth:`~freereg_lib.backends.base.Backend.fcgf_model` (the micro backend's trained
+    FCGF) is used when no ``model`` is given.
     """
     method = (method or cfg.geometric).lower()
     if method == "fpfh":
@@ -179,5 +209,7 @@ def geometric_features(points: np.ndarray, cfg, method: str | None = None,
         return fpfh_features(points, v, cfg.normal_radius_factor * v, cfg.fpfh_radius_factor * v,
                              camera_location=camera_location, at=at)
     if method == "fcgf":
+        if kw.get("model") is None and backend is not None:
+            kw["model"] = getattr(backend, "fcgf_model", lambda: None)()
         return fcgf_features(points, cfg.voxel_size, cfg=cfg, **kw)
     raise ValueError(f"unknown geometric feature {method!r}; use 'fpfh' or 'fcgf'")

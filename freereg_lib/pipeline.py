@@ -225,10 +225,9 @@ def compute_features(
         # Normals face each cloud's own viewpoint, so FPFH signs agree across the two sides.
         good = np.isfinite(pts_img).all(1)
         # ``at``: only the features the keypoints will read are computed.
-        fcgf = {"model": backend.fcgf_model()} if cfg.geometric.lower() == "fcgf" else {}
-        down_img, feats_img = geo.geometric_features(cloud_img, cfg, at=pts_img[good], **fcgf)
+        down_img, feats_img = geo.geometric_features(cloud_img, cfg, at=pts_img[good], backend=backend)
         down_pc, feats_pc = geo.geometric_features(cloud_dep, cfg, camera_location=pair.T_pc_sensor[:3, 3],
-                                                   at=pts_dep, **fcgf)
+                                                   at=pts_dep, backend=backend)
         geo_img = np.zeros((len(uv_img), feats_img.shape[1]))
         geo_img[good] = geo.pixel_features(pts_img[good], down_img, feats_img, cfg.tau_g)
         geo_dep = geo.pixel_features(pts_dep, down_pc, feats_pc, cfg.tau_g)

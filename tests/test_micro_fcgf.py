@@ -155,3 +155,27 @@ def test_micro_backend_gives_the_pipeline_its_fcgf():
     fp = pipeline.compute_features(pair, backend, replace(cfg, geometric="fpfh"), diffusion=False, geometric=True,
                                    mono=pair.depth_gt)
     assert fp.geo_image.shape[1] == 33
+
+
+def test_recent_fcgf_features_come_from_memory_only_for_the_same_cloud_and_network(monkeypatch):
+    from freereg_lib import geometric
+    from freereg_lib.backends import fcgf as F
+
+    net = MF.build(1).eval()
+    calls = []
+    real = F.fcgf_features
+    monkeypatch.setattr(F, "fcgf_features", lambda *a, **k: calls.append(1) or real(*a, **k))
+    pts = _pair(3)["a"].astype(np.float64)
+    d0, f0 = geometric.fcgf_features(pts, MF.VOXEL, model=net)
+    d1, f1 = geometric.fcgf_features(pts.copy(), MF.VOXEL, model=net)
+    assert len(calls) == 1 and np.array_equal(f0, f1) and np.array_equal(d0, d1)
+    f1[:] = 0  # a caller changing its copy does not change what is kept
+    assert np.array_equal(geometric.fcgf_features(pts, MF.VOXEL, model=net)[1], f0)
+    moved = pts.copy()
+    moved[0, 0] += 0.01
+    geometric.fcgf_features(moved, MF.VOXEL, model=net)
+    assert len(calls) == 2
+    with torch.no_grad():
+        next(net.parameters()).add_(1e-3)  # a trained (changed) network
+    geometric.fcgf_features(pts, MF.VOXEL, model=net)
+    assert len(calls) == 3
