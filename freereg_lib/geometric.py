@@ -182,13 +182,6 @@ def _recent_features(points: np.ndarray, voxel: float, model, compute):
     return down, feats
 
 
-def default_method(backend_name: str) -> str:
-    """The geometric features a notebook uses when its ``geometric_method`` is None: the micro
-    backend's trained FCGF (``freereg_lib/micro/weights/fcgf``) with ``backend="micro"``, FPFH
-    (Open3D, no weights) with the others, whose FCGF needs the official checkpoint."""
-    return "fcgf" if backend_name == "micro" else "fpfh"
-
-
 def geometric_features(points: np.ndarray, cfg, method: str | None = None,
                        camera_location=(0.0, 0.0, 0.0), at: np.ndarray | None = None,
                        backend=None, **kw) -> tuple[np.ndarray, np.ndarray]:

@@ -41,7 +41,7 @@ COMMON_PARAMS = ("backend", "dataset", "n_pairs", "seed", "device", "out_dir", "
 METRIC_COLUMNS = ("FMR", "IR", "IN", "RR")
 
 # Non-default runs (issue 4): another seed and fewer pairs everywhere, the tiny backend for 01,
-# the stub instead of the default micro backend for 03 and 04 (nbmake runs their defaults), the
+# the stub instead of the default micro backend for 02, 03 and 04 (nbmake runs their defaults), the
 # embedded ICL frames for 02 and 04. ``knobs`` only shorten a run and are passed only when
 # the notebook declares them; ``params`` must all be declared.
 RUNS = {
@@ -51,7 +51,7 @@ RUNS = {
         knobs={"t_hats": [150, 50], "ransac_iters": 2000},
     ),
     "02_geometric_features": dict(
-        params={"dataset": "icl", "seed": 1, "n_pairs": 2},
+        params={"backend": "stub", "dataset": "icl", "seed": 1, "n_pairs": 2},
         knobs={"mono_errors": [0.0, 0.27], "sweep_ransac_iters": 2000},
     ),
     "03_fusion": dict(

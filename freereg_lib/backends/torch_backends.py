@@ -278,6 +278,8 @@ class MicroBackend(_TorchBackend):
             holds one, else the committed ``freereg_lib/micro/weights/depth``).
         mono_mae: with ``mono_depth="stub"``, the stub's error size in metres (its
             ``mono_mae``; a controlled sweep of the depth error, notebook 02).
+        fcgf_weights_dir: a micro FCGF folder (``train_fcgf --export``) for ``cfg.geometric =
+            "fcgf"`` (default: ``weights_dir/fcgf``, else the package's, where none is committed).
     """
 
     name = "micro"
@@ -286,7 +288,7 @@ class MicroBackend(_TorchBackend):
 
     def __init__(self, cfg, device=None, dtype=None, weights_dir=None, random_weights: bool = False,
                  seed: int | None = None, mono_depth: str = "micro", depth_weights_dir=None,
-                 mono_mae: float | None = None):
+                 mono_mae: float | None = None, fcgf_weights_dir=None):
         from ..micro import depth as MD
         from ..micro import models as M
 
@@ -304,6 +306,7 @@ class MicroBackend(_TorchBackend):
         if mono_mae is not None and mono_depth != "stub":
             raise ValueError("mono_mae sets the stub's designed depth error: pass mono_depth='stub' with it")
         self.mono_mae = mono_mae
+        self.fcgf_weights_dir = fcgf_weights_dir
         if not self.random_weights and M.missing_parts(self.weights_dir):
             raise MissingWeightsError(
                 f"micro weights missing in {self.weights_dir}: {', '.join(M.missing_parts(self.weights_dir))}; "
@@ -370,14 +373,16 @@ class MicroBackend(_TorchBackend):
         return Backend.mono_depth_batch(self, images, depth_gts)
 
     def fcgf_model(self):
-        """The micro FCGF (``weights_dir/fcgf``, else the committed one; loaded by the official
-        checkpoints' loader) for ``cfg.geometric = "fcgf"``, or the same network with seeded
-        random weights when ``random_weights``."""
+        """The micro FCGF (``fcgf_weights_dir``, else ``weights_dir/fcgf``, else the package's;
+        loaded by the official checkpoints' loader) for ``cfg.geometric = "fcgf"``, or the same
+        network with seeded random weights when ``random_weights``. A missing file raises
+        ``MissingWeightsError`` with the command that trains one."""
         if getattr(self, "_fcgf", None) is None:
             from ..micro import fcgf as MF
 
             if self.random_weights:
                 self._fcgf = MF.build(self.seed).to(self.device).eval()
             else:
-                self._fcgf = MF.load(MF.folder_of(self.weights_dir), device=self.device)
+                folder = self.fcgf_weights_dir or MF.folder_of(self.weights_dir)
+                self._fcgf = MF.load(folder, device=self.device)
         return self._fcgf

@@ -1,7 +1,7 @@
 """Held-out quality of the micro FCGF and of the micro geometric chain (FreeReg-G, fused FreeReg).
 
     python -m freereg_lib.micro.evaluate_fcgf [--pairs 30] [--seed 2026] [--skip-chain]
-        [--kabsch-scoring matches] [--out freereg_lib/micro/weights/fcgf/eval.json]
+        [--fcgf DIR] [--kabsch-scoring matches] [--out DIR/eval.json]
 
 On synthetic indoor pairs from integer seeds (the training pairs come from a two-word seed
 sequence, :mod:`.train_fcgf`, which no integer seed reproduces):
@@ -55,13 +55,13 @@ def _stats(values, fmr_ratio: float | None = None) -> dict:
     return {"mean": 100 * float(v.mean()), "ci": [100 * lo, 100 * hi]}
 
 
-def features_alone(pairs, cfg, progress: bool = True) -> dict:
+def features_alone(pairs, cfg, progress: bool = True, fcgf_dir=None) -> dict:
     """Per-method IR at 10 cm and at tau_c with true image depth (measurement 1)."""
     from .. import pipeline
     from ..backends import get_backend
 
     setups = {
-        "micro FCGF": (get_backend("micro", cfg), "fcgf"),
+        "micro FCGF": (get_backend("micro", cfg, fcgf_weights_dir=fcgf_dir), "fcgf"),
         "FPFH": (get_backend("micro", cfg), "fpfh"),
         "random FCGF": (get_backend("micro", cfg, random_weights=True), "fcgf"),
     }
@@ -82,13 +82,13 @@ def features_alone(pairs, cfg, progress: bool = True) -> dict:
     return out
 
 
-def chain(pairs, cfg, progress: bool = True) -> dict:
+def chain(pairs, cfg, progress: bool = True, fcgf_dir=None) -> dict:
     """FreeReg-G and FreeReg through the micro backend (measurement 2)."""
     from .. import metrics, pipeline
     from ..backends import get_backend
 
     setups = {
-        "micro (FCGF)": (dict(), "fcgf", CHAIN_VARIANTS),
+        "micro (FCGF)": (dict(fcgf_weights_dir=fcgf_dir), "fcgf", CHAIN_VARIANTS),
         "micro (FPFH)": (dict(), "fpfh", CHAIN_VARIANTS[:2]),
         "random weights (FCGF)": (dict(random_weights=True), "fcgf", CHAIN_VARIANTS[:2]),
     }
@@ -170,6 +170,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--pairs", type=int, default=30)
     p.add_argument("--seed", type=int, default=2026)
+    p.add_argument("--fcgf", default=None, help="the micro FCGF folder (train_fcgf --export); default: the package's")
     p.add_argument("--skip-chain", action="store_true", help="only the features-alone measurement")
     p.add_argument("--skip-features", action="store_true", help="only the chain")
     p.add_argument("--kabsch-scoring", default="matches", choices=("official", "matches"),
@@ -181,9 +182,9 @@ def main(argv=None) -> int:
     pairs = synthetic.make_pairs(args.pairs, "indoor", seed=args.seed, progress=True)
     result = {"n_pairs": args.pairs, "seed": args.seed, "kabsch_scoring": args.kabsch_scoring}
     if not args.skip_features:
-        result["features"] = features_alone(pairs, cfg)
+        result["features"] = features_alone(pairs, cfg, fcgf_dir=args.fcgf)
     if not args.skip_chain:
-        result["chain"] = chain(pairs, cfg)
+        result["chain"] = chain(pairs, cfg, fcgf_dir=args.fcgf)
     print(report(result))
     if args.out:
         out = Path(args.out)
