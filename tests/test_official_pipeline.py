@@ -100,7 +100,7 @@ def test_geometric_clouds_are_the_depth_map_and_the_edge_filtered_mono_depth(mon
     mono = _step(24, 32, col=16, near=1.5, far=2.5)
     seen = []
 
-    def fake(cloud, cfg, camera_location=None, at=None):
+    def fake(cloud, cfg, camera_location=None, at=None, backend=None):
         seen.append(np.asarray(cloud))
         return np.asarray(cloud)[:1], np.ones((1, 4))
 
