@@ -745,17 +745,7 @@ def main(argv=None) -> int:
             print(f"... micro chain ({geo}) done ({statistics.median(res['total']):.2f} s per pair)", flush=True)
         notes.append(f"micro backend: {micro.label}; diffusion input {micro.resize_hw[0]} x {micro.resize_hw[1]}, "
                      f"DDIM {cfg.ddim_steps} steps")
-        print()
-        print(format_table(results, device, gpu))
-        for note in notes:
-            print(f"note: {note}")
-        for r in results:
-            print(f"{r['label']}, one pair end to end (run_pair, {_variants(r['variants'])}): "
-                  f"{statistics.median(r['total']):.2f} s median (min {min(r['total']):.2f}, max {max(r['total']):.2f})")
-        if args.json:
-            with open(args.json, "w") as fh:
-                json.dump({"device": info, "notes": notes, "results": results}, fh, indent=1, default=str)
-        return 0
+        return report(results, notes, info, device, gpu, results, args.json)
 
     # 1. The stub chain (CPU).
     stub = get_backend("stub", cfg, **({"resize_hw": (128, 192)} if ci else {}))
@@ -825,16 +815,20 @@ def main(argv=None) -> int:
             notes.append(f"mutual NN {n} x {n} on {d}: {res['n_mutual']} mutual pairs")
         print("... matching micro-benchmark done", flush=True)
 
+    return report(results, notes, info, device, gpu, results[:1], args.json)
+
+
+def report(results, notes, info, device, gpu, chains, json_path) -> int:
+    """The stage table, the notes, each chain's end-to-end line and the optional JSON file."""
     print()
     print(format_table(results, device, gpu))
     for note in notes:
         print(f"note: {note}")
-    chain = results[0]
-    e2e = statistics.median(chain["total"])
-    print(f"stub chain, one pair end to end (run_pair, {_variants(chain['variants'])}): "
-          f"{e2e:.2f} s median (min {min(chain['total']):.2f}, max {max(chain['total']):.2f})")
-    if args.json:
-        with open(args.json, "w") as fh:
+    for r in chains:
+        print(f"{r['label']}, one pair end to end (run_pair, {_variants(r['variants'])}): "
+              f"{statistics.median(r['total']):.2f} s median (min {min(r['total']):.2f}, max {max(r['total']):.2f})")
+    if json_path:
+        with open(json_path, "w") as fh:
             json.dump({"device": info, "notes": notes, "results": results}, fh, indent=1, default=str)
     return 0
 

@@ -344,6 +344,24 @@ def solve(pair: Pair, feats: PairFeatures, m: Matches, cfg: FreeRegConfig, solve
     raise ValueError(f"unknown solver {solver!r}; expected 'kabsch' or 'pnp'")
 
 
+def correct_matches(pair: Pair, feats: PairFeatures, m: Matches, cfg: FreeRegConfig,
+                    tau_c: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(correct, evaluable)`` per match at ``tau_c`` metres (default ``cfg.tau_c``), each side
+    lifted with its own frame's true depth as :func:`evaluate` describes."""
+    if pair.depth_gt is None:
+        raise ValueError(f"pair {pair.name} has no ground-truth image depth; matches cannot be scored")
+    uv_dep = feats.uv_depth[m.idx_depth]
+    z_true = cameras.nearest_sample(feats.view.raw, uv_dep)
+    ok = (z_true > cfg.depth_min) & (z_true < cfg.depth_max)
+    pts_true = np.full((len(uv_dep), 3), np.nan)
+    if ok.any():
+        pts_true[ok] = cameras.transform(pair.T_pc_sensor, cameras.lift(uv_dep[ok], z_true[ok], pair.K_depth))
+    return metrics.correct_matches(
+        feats.uv_image[m.idx_image], pts_true, pair.depth_gt, pair.K_image,
+        pair.T_cam_pc, cfg.tau_c if tau_c is None else tau_c, (cfg.depth_min, cfg.depth_max),
+    )
+
+
 def evaluate(pair: Pair, feats: PairFeatures, m: Matches, result: pose.PoseResult, cfg: FreeRegConfig) -> dict:
     """Per-pair metrics: ``IR`` (fraction), ``IN``, ``RE``, ``TE``, ``registered``.
 
@@ -353,19 +371,7 @@ def evaluate(pair: Pair, feats: PairFeatures, m: Matches, result: pose.PoseResul
     projected cloud), not with the densified map the features were computed on. A match
     whose true depth on either side is missing or outside the depth range is not evaluable.
     """
-    if pair.depth_gt is None:
-        raise ValueError(f"pair {pair.name} has no ground-truth image depth; matches cannot be scored")
-    uv_dep = feats.uv_depth[m.idx_depth]
-    z_true = cameras.nearest_sample(feats.view.raw, uv_dep)
-    ok = (z_true > cfg.depth_min) & (z_true < cfg.depth_max)
-    pts_true = np.full((len(uv_dep), 3), np.nan)
-    if ok.any():
-        pts_true[ok] = cameras.transform(pair.T_pc_sensor, cameras.lift(uv_dep[ok], z_true[ok], pair.K_depth))
-    correct, evaluable = metrics.correct_matches(
-        feats.uv_image[m.idx_image], pts_true, pair.depth_gt, pair.K_image,
-        pair.T_cam_pc, cfg.tau_c, (cfg.depth_min, cfg.depth_max),
-    )
-    ir, inn = metrics.inlier_stats(correct, evaluable)
+    ir, inn = metrics.inlier_stats(*correct_matches(pair, feats, m, cfg))
     re, te = metrics.pose_errors(result.T_cam_pc, pair.T_cam_pc) if result.success else (math.nan, math.nan)
     return {
         "IR": ir, "IN": inn, "RE": re, "TE": te,

@@ -34,17 +34,9 @@ PAPER = {"FreeReg-G IR": 31.4, "FreeReg-G FMR": 90.7, "FreeReg-G RR (Kabsch)": 5
 
 def _ir(pair, feats, m, cfg, tau: float) -> float:
     """Inlier ratio of matches ``m`` at ``tau`` metres, scored as :func:`pipeline.evaluate`."""
-    from .. import cameras, metrics
+    from .. import metrics, pipeline
 
-    uv_dep = feats.uv_depth[m.idx_depth]
-    z_true = cameras.nearest_sample(feats.view.raw, uv_dep)
-    ok = (z_true > cfg.depth_min) & (z_true < cfg.depth_max)
-    pts = np.full((len(uv_dep), 3), np.nan)
-    if ok.any():
-        pts[ok] = cameras.transform(pair.T_pc_sensor, cameras.lift(uv_dep[ok], z_true[ok], pair.K_depth))
-    correct, evaluable = metrics.correct_matches(feats.uv_image[m.idx_image], pts, pair.depth_gt, pair.K_image,
-                                                 pair.T_cam_pc, tau, (cfg.depth_min, cfg.depth_max))
-    return metrics.inlier_stats(correct, evaluable)[0]
+    return metrics.inlier_stats(*pipeline.correct_matches(pair, feats, m, cfg, tau))[0]
 
 
 def _stats(values, fmr_ratio: float | None = None) -> dict:

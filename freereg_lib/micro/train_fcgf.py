@@ -36,13 +36,12 @@ import argparse
 import json
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from .fcgf import VOXEL, build, save
+from .views import progress_map
 
 TRAIN_STREAM = 0xF3EE_0002
 POS_RADIUS = 1.5 * VOXEL  # FCGF: positive_pair_search_voxel_size_multiplier x voxel
@@ -111,21 +110,8 @@ def _training_pair(k: int) -> dict:
 def training_pairs(n: int, first: int = 0, workers: int | None = None, progress: bool = True) -> list[dict]:
     """Clouds of training pairs ``first .. first + n - 1``: ``a`` image side (camera frame),
     ``b`` depth side (cloud frame), one point per voxel, float32; ``T`` the true ``T_cam_pc``."""
-    ks = list(range(first, first + n))
-    workers = workers or min(n, os.cpu_count() or 1)
-    bar = tqdm(total=n, desc="rendering training pairs", unit="pair", disable=not progress)
-    out = []
-    if workers <= 1:
-        for k in ks:
-            out.append(_training_pair(k))
-            bar.update()
-    else:
-        with ProcessPoolExecutor(workers) as pool:
-            for item in pool.map(_training_pair, ks, chunksize=2):
-                out.append(item)
-                bar.update()
-    bar.close()
-    return out
+    return progress_map(_training_pair, list(range(first, first + n)), workers, "rendering training pairs", "pair",
+                        progress, chunksize=2)
 
 
 def load_or_make_pairs(path: Path, n: int, workers: int | None = None) -> list[dict]:

@@ -78,20 +78,27 @@ def render_views(n_scenes: int, views_per_scene: int = 4, first_scene: int = 0,
     (the same arguments give identical arrays whatever ``workers`` is).
     """
     jobs = [(k, views_per_scene, kind) for k in range(first_scene, first_scene + n_scenes)]
-    workers = workers or min(len(jobs), os.cpu_count() or 1)
-    parts = []
-    bar = tqdm(total=len(jobs), desc="rendering training rooms", unit="room", disable=not progress)
-    if workers <= 1:
-        for job in jobs:
-            parts.append(_scene_views(job))
-            bar.update()
-    else:
-        with ProcessPoolExecutor(workers) as pool:
-            for part in pool.map(_scene_views, jobs, chunksize=4):
-                parts.append(part)
-                bar.update()
-    bar.close()
+    parts = progress_map(_scene_views, jobs, workers, "rendering training rooms", "room", progress, chunksize=4)
     return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+
+
+def progress_map(fn, jobs: list, workers: int | None, desc: str, unit: str, progress: bool = True,
+                 chunksize: int = 1) -> list:
+    """``[fn(job) for job in jobs]`` in order, over ``workers`` processes (default: one per
+    core, at most one per job) with a progress bar; one worker runs in this process."""
+    workers = workers or min(len(jobs), os.cpu_count() or 1)
+    out = []
+    with tqdm(total=len(jobs), desc=desc, unit=unit, disable=not progress) as bar:
+        if workers <= 1:
+            for item in map(fn, jobs):
+                out.append(item)
+                bar.update()
+        else:
+            with ProcessPoolExecutor(workers) as pool:
+                for item in pool.map(fn, jobs, chunksize=chunksize):
+                    out.append(item)
+                    bar.update()
+    return out
 
 
 def load_or_render(path: str | Path, n_scenes: int, views_per_scene: int = 4,
