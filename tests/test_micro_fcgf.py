@@ -179,3 +179,21 @@ def test_recent_fcgf_features_come_from_memory_only_for_the_same_cloud_and_netwo
         next(net.parameters()).add_(1e-3)  # a trained (changed) network
     geometric.fcgf_features(pts, MF.VOXEL, model=net)
     assert len(calls) == 3
+
+
+def test_table9_ordering_is_read_from_both_ladders():
+    from freereg_lib.micro.evaluate_fcgf import ladder_line, ladder_order
+
+    tight, loose = "RR@5deg/0.1m", "RR@25deg/0.5m"
+
+    def res(pnp, kabsch):
+        return {"FreeReg-G pnp": {"ladder": {tight: pnp[0], loose: pnp[1]}},
+                "FreeReg-G kabsch": {"ladder": {tight: kabsch[0], loose: kabsch[1]}}}
+
+    paper_like = res((10.0, 40.0), (3.3, 60.0))
+    assert ladder_order(paper_like, "FreeReg-G")["holds"] is True
+    assert ladder_order(res((10.0, 70.0), (3.3, 60.0)), "FreeReg-G")["holds"] is False  # PnP ahead at both ends
+    assert ladder_order(res((0.0, 40.0), (3.3, 60.0)), "FreeReg-G")["holds"] is False  # Kabsch ahead at both
+    line = ladder_line(ladder_order(paper_like, "FreeReg-G"), paper_like)
+    assert "5deg/0.1m: 10.0/3.3" in line and "holds here" in line
+    assert "PnP 9.4 / Kabsch 3.5" in line and "40.2 / 65.3" in line  # the paper's Table 9, 3DMatch row

@@ -165,6 +165,8 @@ def write_card(folder: Path, ev: dict) -> None:
     a = tr["arguments"]
     m, s, r = ev["micro"], ev["stub"], ev["random"]
     size_mb = (folder / "model.safetensors").stat().st_size / 1e6
+    cf = json.loads((folder / "config.json").read_text())
+    bb = cf["backbone_config"]
 
     def fmt_bins(x):
         return ", ".join(f"{k}: {_m(v)}" for k, v in x["mae_by_true_depth_m"].items())
@@ -173,8 +175,9 @@ def write_card(folder: Path, ev: dict) -> None:
         "# Micro monocular depth (micro ZoeDepth): model card",
         "",
         "transformers' `ZoeDepthForDepthEstimation` (the class the `real` backend loads) with a small "
-        f"configuration (`freereg_lib/micro/depth.py`): BEiT backbone 4 layers x 128 channels, patch 16, "
-        f"relative position bias; DPT neck at 32 channels; one metric bin head, 32 bins over "
+        f"configuration (`freereg_lib/micro/depth.py`): BEiT backbone {bb['num_hidden_layers']} layers x "
+        f"{bb['hidden_size']} channels, patch {bb['patch_size']}, relative position bias; DPT neck at "
+        f"{cf['fusion_hidden_size']} channels, reassemble factors {cf['reassemble_factors']}; one metric bin head, 32 bins over "
         f"{MD.MIN_DEPTH:g}..{MD.MAX_DEPTH:g} m. {tr['parameters_millions']} M parameters, "
         f"`model.safetensors` float16 ({size_mb:.1f} MB), loaded as float32. Processor: the same "
         f"`ZoeDepthImageProcessor(Pil)` class, reflection padding, aspect kept, input "

@@ -74,17 +74,26 @@ def features_alone(pairs, cfg, progress: bool = True, fcgf_dir=None) -> dict:
     return out
 
 
-def chain(pairs, cfg, progress: bool = True, fcgf_dir=None) -> dict:
-    """FreeReg-G and FreeReg through the micro backend (measurement 2)."""
+def chain(pairs, cfg, progress: bool = True, fcgf_dir=None, geometric: str = "fcgf") -> dict:
+    """FreeReg-G and FreeReg through the micro backend (measurement 2).
+
+    ``geometric``: the geometric descriptor of the trained chain, ``"fcgf"`` (the micro FCGF,
+    compared with FPFH and with the chain at random weights) or ``"fpfh"`` (the micro depth,
+    diffusion models and FPFH, compared with the chain at random weights: the learned
+    depth's effect on FreeReg-G, and Table 9's ladders, while no micro FCGF beats FPFH)."""
     from .. import metrics, pipeline
     from ..backends import get_backend
 
-    setups = {
-        "micro (FCGF)": (dict(fcgf_weights_dir=fcgf_dir), "fcgf", CHAIN_VARIANTS),
-        "micro (FPFH)": (dict(), "fpfh", CHAIN_VARIANTS[:2]),
-        "random weights (FCGF)": (dict(random_weights=True), "fcgf", CHAIN_VARIANTS[:2]),
-    }
-    out = {}
+    if geometric not in ("fcgf", "fpfh"):
+        raise ValueError(f"geometric must be 'fcgf' or 'fpfh', got {geometric!r}")
+    main_name = f"micro ({geometric.upper()})"
+    setups = {main_name: (dict(fcgf_weights_dir=fcgf_dir) if geometric == "fcgf" else {}, geometric,
+                          CHAIN_VARIANTS)}
+    if geometric == "fcgf":
+        setups["micro (FPFH)"] = (dict(), "fpfh", CHAIN_VARIANTS[:2])
+    random_name = f"random weights ({geometric.upper()})"
+    setups[random_name] = (dict(random_weights=True), geometric, CHAIN_VARIANTS)
+    out = {"main": main_name, "random": random_name}
     for name, (kw, method, variants) in setups.items():
         c = replace(cfg, geometric=method)
         backend = get_backend("micro", c, **kw)
@@ -102,23 +111,24 @@ def chain(pairs, cfg, progress: bool = True, fcgf_dir=None) -> dict:
             }
         out[name] = res
         out[name + " label"] = backend.label
-    a = out["micro (FCGF)"]["FreeReg-G kabsch"]["IR_per_pair"]
-    b = out["random weights (FCGF)"]["FreeReg-G kabsch"]["IR_per_pair"]
+    a = out[main_name]["FreeReg-G kabsch"]["IR_per_pair"]
+    b = out[random_name]["FreeReg-G kabsch"]["IR_per_pair"]
     out["IR_ratio_trained_random"] = float(np.mean(a) / max(np.mean(b), 1e-12))
     out["p_trained_vs_random"] = paired_permutation_p(a, b)
-    out["ladder_order"] = ladder_order(out["micro (FCGF)"])
+    out["ladder_order"] = ladder_order(out[main_name])
+    out["ladder_order_G"] = ladder_order(out[main_name], "FreeReg-G")
     return out
 
 
-def ladder_order(res: dict) -> dict:
-    """Whether the paper's Table 9 ordering holds: PnP at least as good as Kabsch at the
-    tightest rung, Kabsch at least as good at the loosest (fused FreeReg)."""
-    pnp, kab = res["FreeReg pnp"]["ladder"], res["FreeReg kabsch"]["ladder"]
+def ladder_order(res: dict, method: str = "FreeReg") -> dict:
+    """Whether the paper's Table 9 ordering holds for ``method``: PnP at least as good as Kabsch
+    at the tightest rung, Kabsch at least as good at the loosest."""
+    pnp, kab = res[f"{method} pnp"]["ladder"], res[f"{method} kabsch"]["ladder"]
     rungs = list(pnp)
     if not rungs:
         return {"holds": None}
     tight, loose = rungs[0], rungs[-1]
-    return {"tight": tight, "loose": loose, "pnp_tight": pnp[tight], "kabsch_tight": kab[tight],
+    return {"method": method, "tight": tight, "loose": loose, "pnp_tight": pnp[tight], "kabsch_tight": kab[tight],
             "pnp_loose": pnp[loose], "kabsch_loose": kab[loose],
             "holds": bool(pnp[tight] >= kab[tight] and kab[loose] >= pnp[loose])}
 
@@ -139,20 +149,35 @@ def report(result: dict) -> str:
         lines.append(f"  micro FCGF vs FPFH (IR@10cm): paired permutation p = {fa['p_fcgf_vs_fpfh']:.4f}")
     ch = result.get("chain")
     if ch:
-        lines.append(f"Chain through the micro backend ({ch['micro (FCGF) label']}):")
-        for name in ("micro (FCGF)", "micro (FPFH)", "random weights (FCGF)"):
+        main, rand = ch.get("main", "micro (FCGF)"), ch.get("random", "random weights (FCGF)")
+        lines.append(f"Chain through the micro backend ({ch[main + ' label']}):")
+        for name in [n for n in (main, "micro (FPFH)", rand) if n in ch and not (n == "micro (FPFH)" == main)]:
             for variant, r in ch[name].items():
                 lines.append(f"  {name:22s} {variant:18s} IR {_fmt(r['IR'])}  FMR {_fmt(r['FMR'])}  RR {_fmt(r['RR'])}")
         lines.append(f"  FreeReg-G Kabsch IR trained / random = {ch['IR_ratio_trained_random']:.2f}x "
                      f"(p = {ch['p_trained_vs_random']:.4f}); paper (3DMatch, FCGF): IR {PAPER['FreeReg-G IR']} %, "
                      f"FMR {PAPER['FreeReg-G FMR']} %, RR {PAPER['FreeReg-G RR (Kabsch)']} %")
-        lo = ch["ladder_order"]
-        if lo.get("holds") is not None:
-            lines.append(f"  Table 9 (fused FreeReg): RR {lo['tight']} PnP {lo['pnp_tight']:.1f} / Kabsch "
-                         f"{lo['kabsch_tight']:.1f}; {lo['loose']} PnP {lo['pnp_loose']:.1f} / Kabsch "
-                         f"{lo['kabsch_loose']:.1f} -> the paper's ordering (PnP tighter, Kabsch looser) "
-                         f"{'holds' if lo['holds'] else 'does not hold'}")
+        for key in ("ladder_order_G", "ladder_order"):
+            lo = ch.get(key) or {}
+            if lo.get("holds") is not None:
+                lines.append(ladder_line(lo, ch[main]))
     return "\n".join(lines)
+
+
+def ladder_line(lo: dict, res: dict) -> str:
+    """Table 9 as measured, both ladders in full, and whether the paper's ordering holds."""
+    method = lo.get("method", "FreeReg")
+    pnp, kab = res[f"{method} pnp"]["ladder"], res[f"{method} kabsch"]["ladder"]
+    from ..paper import table
+
+    rungs = "  ".join(f"{k[3:]}: {pnp[k]:.1f}/{kab[k]:.1f}" for k in pnp)
+    t9 = table("table_pnp_vs_kabsch").set_index(["dataset", "solver"])
+    p_pnp, p_kab = t9.loc[("3DMatch", "PnP")], t9.loc[("3DMatch", "Kabsch")]
+    return (f"  Table 9 ({method}), RR % PnP/Kabsch  {rungs}\n"
+            f"    -> the paper's ordering (PnP ahead at {lo['tight'][3:]}, Kabsch ahead at {lo['loose'][3:]}) "
+            f"{'holds' if lo['holds'] else 'does not hold'} here (paper, Table 9 on 3DMatch: PnP "
+            f"{p_pnp['RR_1']:.1f} / Kabsch {p_kab['RR_1']:.1f} at the tightest rung, {p_pnp['RR_5']:.1f} / "
+            f"{p_kab['RR_5']:.1f} at the loosest)")
 
 
 def main(argv=None) -> int:
@@ -165,6 +190,8 @@ def main(argv=None) -> int:
     p.add_argument("--fcgf", default=None, help="the micro FCGF folder (train_fcgf --export); default: the package's")
     p.add_argument("--skip-chain", action="store_true", help="only the features-alone measurement")
     p.add_argument("--skip-features", action="store_true", help="only the chain")
+    p.add_argument("--geometric", default="fcgf", choices=("fcgf", "fpfh"),
+                   help="the chain's geometric descriptor: the micro FCGF, or FPFH beside the micro depth")
     p.add_argument("--kabsch-scoring", default="matches", choices=("official", "matches"),
                    help="Kabsch-RANSAC scoring; 'matches' as the notebooks (the official Open3D scoring "
                         "costs about 70 s a pair at 50k iterations here: README, 'Kabsch-RANSAC scoring')")
@@ -176,7 +203,7 @@ def main(argv=None) -> int:
     if not args.skip_features:
         result["features"] = features_alone(pairs, cfg, fcgf_dir=args.fcgf)
     if not args.skip_chain:
-        result["chain"] = chain(pairs, cfg, fcgf_dir=args.fcgf)
+        result["chain"] = chain(pairs, cfg, fcgf_dir=args.fcgf, geometric=args.geometric)
     print(report(result))
     if args.out:
         out = Path(args.out)

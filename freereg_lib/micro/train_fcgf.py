@@ -47,7 +47,7 @@ TRAIN_STREAM = 0xF3EE_0002
 POS_RADIUS = 1.5 * VOXEL  # FCGF: positive_pair_search_voxel_size_multiplier x voxel
 POS_MARGIN, NEG_MARGIN = 0.1, 1.4
 NUM_POS, NUM_HN = 1024, 256
-VAL_PAIRS = 4  # held out from the end of the training stream; a fixed crop and rotation each
+VAL_PAIRS = 4  # held out from the end of the training stream; --val-crops fixed crops and rotations each
 BATCH_SHIFT = 1 << 14  # voxels between the two clouds of a batch (a multiple of the deepest stride)
 
 
@@ -63,6 +63,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--scale-aug", type=float, default=0.1, help="image-side scale drawn from U(1-s, 1+s)")
     p.add_argument("--rotations", choices=("inference", "so3"), default="inference",
                    help="each side in its inference frame (cloud side turned about z), or FCGF's uniform SO(3)")
+    p.add_argument("--val-crops", type=int, default=1,
+                   help="fixed crops per validation pair (the hit ratio of one crop a pair is noisy)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--checkpoint-every", type=int, default=50)
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
@@ -300,8 +302,9 @@ def main(argv=None) -> int:
 
     val_batches = []
     for k, p in enumerate(val):
-        rng = np.random.default_rng((args.seed, k))
-        val_batches.append(draw(rng, lambda r, p=p: p))
+        for c in range(args.val_crops):
+            rng = np.random.default_rng((args.seed, k) if c == 0 else (args.seed, k, c))
+            val_batches.append(draw(rng, lambda r, p=p: p))
 
     def val_fn():
         g = torch.Generator().manual_seed(0)
