@@ -93,6 +93,7 @@ def write_card(folder: Path = M.WEIGHTS_DIR) -> Path:
         f"ControlNet {st['controlnet']['seconds'] / 60:.0f} min), plus rendering the views (about 23 min) and"
         " encoding the latents. Weights: "
         f"{size_mb:.1f} MB of float16 safetensors.",
+        *([f"- History: {training['history']}."] if training.get("history") else []),
         "",
         "![loss curves](loss_curves.png)",
         "",

@@ -1,7 +1,7 @@
 """Train the micro diffusion models from scratch: VAE, then UNet, then depth ControlNet.
 
     python -m freereg_lib.micro.train_diffusion [--out runs/micro/train] [--scenes 500]
-        [--steps-vae 700] [--steps-unet 1000] [--steps-controlnet 600] [--batch 16]
+        [--steps-vae 700] [--steps-unet 2000] [--steps-controlnet 1200] [--batch 16]
         [--export freereg_lib/micro/weights]
 
 The stages follow Stable Diffusion's recipe in miniature:
@@ -51,8 +51,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--views-per-scene", type=int, default=4)
     p.add_argument("--stages", nargs="+", default=list(STAGES), choices=STAGES)
     p.add_argument("--steps-vae", type=int, default=700)
-    p.add_argument("--steps-unet", type=int, default=1000)
-    p.add_argument("--steps-controlnet", type=int, default=600)
+    p.add_argument("--steps-unet", type=int, default=2000)
+    p.add_argument("--steps-controlnet", type=int, default=1200)
     p.add_argument("--batch", type=int, default=16)
     p.add_argument("--lr-vae", type=float, default=1e-3)
     p.add_argument("--lr-unet", type=float, default=5e-4)
