@@ -194,6 +194,9 @@ def test_table9_ordering_is_read_from_both_ladders():
     assert ladder_order(paper_like, "FreeReg-G")["holds"] is True
     assert ladder_order(res((10.0, 70.0), (3.3, 60.0)), "FreeReg-G")["holds"] is False  # PnP ahead at both ends
     assert ladder_order(res((0.0, 40.0), (3.3, 60.0)), "FreeReg-G")["holds"] is False  # Kabsch ahead at both
+    assert ladder_order(res((0.0, 0.0), (0.0, 3.3)), "FreeReg-G")["holds"] == "tie"  # 0 % at the tight rung
     line = ladder_line(ladder_order(paper_like, "FreeReg-G"), paper_like)
     assert "5deg/0.1m: 10.0/3.3" in line and "holds here" in line
+    tie = res((0.0, 0.0), (0.0, 3.3))
+    assert "cannot be told here" in ladder_line(ladder_order(tie, "FreeReg-G"), tie)
     assert "PnP 9.4 / Kabsch 3.5" in line and "40.2 / 65.3" in line  # the paper's Table 9, 3DMatch row

@@ -239,6 +239,8 @@ def write_fcgf_card(folder: Path = M.WEIGHTS_DIR / "fcgf") -> Path:
             for name in ("micro (FCGF)", "micro (FPFH)", "random weights (FCGF)"):
                 for variant, r in ch[name].items():
                     lines.append(f"| {name} | {variant} | {_cell(r['IR'])} | {_cell(r['FMR'])} | {_cell(r['RR'])} |")
+            from .evaluate_fcgf import VERDICT
+
             lo = ch["ladder_order"]
             lines += [
                 "",
@@ -252,7 +254,7 @@ def write_fcgf_card(folder: Path = M.WEIGHTS_DIR / "fcgf") -> Path:
                     f"Table 9's ladder (fused FreeReg): at {lo['tight']} PnP {lo['pnp_tight']:.1f} % vs Kabsch "
                     f"{lo['kabsch_tight']:.1f} %; at {lo['loose']} PnP {lo['pnp_loose']:.1f} % vs Kabsch "
                     f"{lo['kabsch_loose']:.1f} %: the paper's ordering (PnP ahead at the tight rung, Kabsch at the"
-                    f" loose one) {'holds' if lo['holds'] else 'does not hold'} here.",
+                    f" loose one) {VERDICT[lo['holds']]}.",
                     "",
                 ]
     lines += [

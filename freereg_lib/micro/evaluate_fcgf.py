@@ -121,16 +121,22 @@ def chain(pairs, cfg, progress: bool = True, fcgf_dir=None, geometric: str = "fc
 
 
 def ladder_order(res: dict, method: str = "FreeReg") -> dict:
-    """Whether the paper's Table 9 ordering holds for ``method``: PnP at least as good as Kabsch
-    at the tightest rung, Kabsch at least as good at the loosest."""
+    """Whether the paper's Table 9 ordering holds for ``method``: PnP ahead of Kabsch at the
+    tightest rung and Kabsch ahead at the loosest (``holds`` True); either reversed (False); or
+    a tie at one end with the other as the paper's (``"tie"``: the run cannot tell)."""
     pnp, kab = res[f"{method} pnp"]["ladder"], res[f"{method} kabsch"]["ladder"]
     rungs = list(pnp)
     if not rungs:
         return {"holds": None}
     tight, loose = rungs[0], rungs[-1]
+    if pnp[tight] < kab[tight] or kab[loose] < pnp[loose]:
+        holds = False
+    elif pnp[tight] > kab[tight] and kab[loose] > pnp[loose]:
+        holds = True
+    else:  # a tie at either end (e.g. both 0 %) neither shows nor contradicts the ordering
+        holds = "tie"
     return {"method": method, "tight": tight, "loose": loose, "pnp_tight": pnp[tight], "kabsch_tight": kab[tight],
-            "pnp_loose": pnp[loose], "kabsch_loose": kab[loose],
-            "holds": bool(pnp[tight] >= kab[tight] and kab[loose] >= pnp[loose])}
+            "pnp_loose": pnp[loose], "kabsch_loose": kab[loose], "holds": holds}
 
 
 def _fmt(s: dict) -> str:
@@ -151,17 +157,20 @@ def report(result: dict) -> str:
     if ch:
         main, rand = ch.get("main", "micro (FCGF)"), ch.get("random", "random weights (FCGF)")
         lines.append(f"Chain through the micro backend ({ch[main + ' label']}):")
-        for name in [n for n in (main, "micro (FPFH)", rand) if n in ch and not (n == "micro (FPFH)" == main)]:
+        for name in dict.fromkeys(n for n in (main, "micro (FPFH)", rand) if n in ch):
             for variant, r in ch[name].items():
                 lines.append(f"  {name:22s} {variant:18s} IR {_fmt(r['IR'])}  FMR {_fmt(r['FMR'])}  RR {_fmt(r['RR'])}")
         lines.append(f"  FreeReg-G Kabsch IR trained / random = {ch['IR_ratio_trained_random']:.2f}x "
                      f"(p = {ch['p_trained_vs_random']:.4f}); paper (3DMatch, FCGF): IR {PAPER['FreeReg-G IR']} %, "
                      f"FMR {PAPER['FreeReg-G FMR']} %, RR {PAPER['FreeReg-G RR (Kabsch)']} %")
-        for key in ("ladder_order_G", "ladder_order"):
-            lo = ch.get(key) or {}
+        for method in ("FreeReg-G", "FreeReg"):
+            lo = ladder_order(ch[main], method)
             if lo.get("holds") is not None:
                 lines.append(ladder_line(lo, ch[main]))
     return "\n".join(lines)
+
+
+VERDICT = {True: "holds here", False: "does not hold here", "tie": "cannot be told here (a tie at one end)"}
 
 
 def ladder_line(lo: dict, res: dict) -> str:
@@ -175,7 +184,7 @@ def ladder_line(lo: dict, res: dict) -> str:
     p_pnp, p_kab = t9.loc[("3DMatch", "PnP")], t9.loc[("3DMatch", "Kabsch")]
     return (f"  Table 9 ({method}), RR % PnP/Kabsch  {rungs}\n"
             f"    -> the paper's ordering (PnP ahead at {lo['tight'][3:]}, Kabsch ahead at {lo['loose'][3:]}) "
-            f"{'holds' if lo['holds'] else 'does not hold'} here (paper, Table 9 on 3DMatch: PnP "
+            f"{VERDICT[lo['holds']]} (paper, Table 9 on 3DMatch: PnP "
             f"{p_pnp['RR_1']:.1f} / Kabsch {p_kab['RR_1']:.1f} at the tightest rung, {p_pnp['RR_5']:.1f} / "
             f"{p_kab['RR_5']:.1f} at the loosest)")
 
