@@ -200,3 +200,27 @@ def test_table9_ordering_is_read_from_both_ladders():
     tie = res((0.0, 0.0), (0.0, 3.3))
     assert "cannot be told here" in ladder_line(ladder_order(tie, "FreeReg-G"), tie)
     assert "PnP 9.4 / Kabsch 3.5" in line and "40.2 / 65.3" in line  # the paper's Table 9, 3DMatch row
+
+
+def test_fcgf_card_states_the_rotations_trained_with_and_the_table9_verdict(tmp_path):
+    import json
+
+    from freereg_lib.micro import card
+
+    stats = {"mean": 1.0, "ci": [0.0, 2.0]}
+    row = {"IR": stats, "FMR": stats, "RR": stats, "ladder": {"RR@5deg/0.1m": 0.0, "RR@25deg/0.5m": 3.3}}
+    chain = {"micro (FCGF)": {f"{m} {s}": row for m in ("FreeReg-G", "FreeReg") for s in ("kabsch", "pnp")},
+             "micro (FPFH)": {"FreeReg-G kabsch": row}, "random weights (FCGF)": {"FreeReg-G kabsch": row},
+             "micro (FCGF) label": "micro", "IR_ratio_trained_random": 1.0, "p_trained_vs_random": 0.5}
+    (tmp_path / "eval.json").write_text(json.dumps({"n_pairs": 30, "seed": 2026, "chain": chain}))
+    for rotations, expected in (("inference", "in the frame the pipeline gives it"),
+                                ("so3", "rotated uniformly in SO(3)")):
+        args = {"pairs": 2, "crop_radius": 0.6, "scale_aug": 0.1, "lr": 5e-4, "warmup": 1, "seed": 0,
+                "rotations": rotations}
+        (tmp_path / "training.json").write_text(json.dumps({
+            "arguments": args, "train_stream": "s", "validation_pairs": "v", "voxels_per_cloud_mean": 1,
+            "steps": 2, "parameters_millions": 8.8, "step_seconds": 1.0, "loss": [1.0, 0.9],
+            "val": [[2, {"loss": 0.9, "hit_ratio": 0.05}]]}))
+        text = card.write_fcgf_card(tmp_path).read_text()
+        assert expected in text
+        assert "cannot be told here (a tie at one end)" in text  # both solvers at 0 % on the tightest rung

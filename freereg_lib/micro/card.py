@@ -192,7 +192,9 @@ def write_fcgf_card(folder: Path = M.WEIGHTS_DIR / "fcgf") -> Path:
         "  the densified depth view of the cloud back-projected; one point per 2.5 cm voxel (mean "
         f"{tr['voxels_per_cloud_mean']} voxels a cloud).",
         f"- Each step: a ball of {a['crop_radius']:g} m around a random overlapping point from both clouds,",
-        f"  each rotated uniformly in SO(3), the image side scaled by U({1 - a['scale_aug']:g}, {1 + a['scale_aug']:g}),",
+        ("  each rotated uniformly in SO(3)," if a.get("rotations") == "so3" else
+         "  each in the frame the pipeline gives it (the cloud side turned about z at random),")
+        + f" the image side scaled by U({1 - a['scale_aug']:g}, {1 + a['scale_aug']:g}),",
         "  re-voxelised, one sparse batch. FCGF's hardest-contrastive loss (margins 0.1 / 1.4, 1024",
         "  positives within 1.5 voxels, 256 hardest-negative candidates a side).",
         f"- {tr['steps']} steps, AdamW lr {a['lr']:g} (weight decay 0.01, {a['warmup']}-step warm-up, gradient",
@@ -239,9 +241,9 @@ def write_fcgf_card(folder: Path = M.WEIGHTS_DIR / "fcgf") -> Path:
             for name in ("micro (FCGF)", "micro (FPFH)", "random weights (FCGF)"):
                 for variant, r in ch[name].items():
                     lines.append(f"| {name} | {variant} | {_cell(r['IR'])} | {_cell(r['FMR'])} | {_cell(r['RR'])} |")
-            from .evaluate_fcgf import VERDICT
+            from .evaluate_fcgf import VERDICT, ladder_order
 
-            lo = ch["ladder_order"]
+            lo = ladder_order(ch["micro (FCGF)"])
             lines += [
                 "",
                 f"FreeReg-G (Kabsch) IR, trained / random weights: {ch['IR_ratio_trained_random']:.2f}x "
