@@ -198,7 +198,8 @@ def compute_features(
             f"{int(np.count_nonzero(view.dense))} pixels of the densified depth view that have depth; the cloud "
             "covers too little of the depth camera's view"
         )
-    pts_dep = cameras.transform(pair.T_pc_sensor, cameras.lift(uv_dep, z_dep, pair.K_depth))
+    pts_dep_cam = cameras.lift(uv_dep, z_dep, pair.K_depth)
+    pts_dep = cameras.transform(pair.T_pc_sensor, pts_dep_cam)
 
     if mono is None:
         mono = backend.mono_depth(pair.image, depth_gt=pair.depth_gt)
@@ -217,20 +218,22 @@ def compute_features(
         # As the official code: the monocular map loses its edge pixels (``cfg.edge_filter_m``)
         # and its depths outside the range before back-projection; the depth side's cloud is
         # the back-projection of the depth map the pipeline uses, not a stored or wider cloud.
+        # Both clouds stay in their own camera's frame (the official ``extrinsic=np.eye(4)``):
+        # FCGF is not rotation invariant, and a depth side turned into the cloud's frame (z up
+        # where the image side has z forward) would hand it the two halves of a pair in frames
+        # it never saw together. Normals face each camera's origin, so FPFH signs agree.
         mono_cloud = np.where((mono > cfg.depth_min) & (mono < cfg.depth_max), mono, 0.0)
         if cfg.edge_filter_m > 0:
             mono_cloud = projection.edge_filter(mono_cloud, cfg.edge_filter_m)
         cloud_img, _ = cameras.backproject(mono_cloud, pair.K_image)
-        cloud_dep = cameras.transform(pair.T_pc_sensor, cameras.backproject(view.dense, pair.K_depth)[0])
-        # Normals face each cloud's own viewpoint, so FPFH signs agree across the two sides.
+        cloud_dep, _ = cameras.backproject(view.dense, pair.K_depth)
         good = np.isfinite(pts_img).all(1)
         # ``at``: only the features the keypoints will read are computed.
         down_img, feats_img = geo.geometric_features(cloud_img, cfg, at=pts_img[good], backend=backend)
-        down_pc, feats_pc = geo.geometric_features(cloud_dep, cfg, camera_location=pair.T_pc_sensor[:3, 3],
-                                                   at=pts_dep, backend=backend)
+        down_dep, feats_dep = geo.geometric_features(cloud_dep, cfg, at=pts_dep_cam, backend=backend)
         geo_img = np.zeros((len(uv_img), feats_img.shape[1]))
         geo_img[good] = geo.pixel_features(pts_img[good], down_img, feats_img, cfg.tau_g)
-        geo_dep = geo.pixel_features(pts_dep, down_pc, feats_pc, cfg.tau_g)
+        geo_dep = geo.pixel_features(pts_dep_cam, down_dep, feats_dep, cfg.tau_g)
     return PairFeatures(uv_img, pts_img, uv_dep, pts_dep, diff_img, diff_dep, geo_img, geo_dep, mono, view)
 
 

@@ -115,6 +115,35 @@ def test_geometric_clouds_are_the_depth_map_and_the_edge_filtered_mono_depth(mon
     assert np.array_equal(dep_cloud, expect_dep)
 
 
+def test_geometric_features_see_the_depth_side_in_its_camera_frame_whatever_the_clouds_frame(monkeypatch):
+    # The official code back-projects the depth map with extrinsic = eye(4): FCGF, which is not
+    # rotation invariant, sees the depth side in the depth camera's frame, never the cloud's.
+    # A feature that is the point's own coordinates tells the frames apart.
+    from freereg_lib import geometric
+
+    def coordinates(cloud, cfg, camera_location=None, at=None, backend=None):
+        cloud = np.asarray(cloud)
+        return cloud, cloud.copy()
+
+    monkeypatch.setattr(geometric, "geometric_features", coordinates)
+    d = _holey_depth()
+    cfg = config_for("scannet", keypoint_grid=(8, 8))
+    mono = np.full(d.shape, 2.0)
+    results = []
+    for angle in (0.0, 0.7):  # the same scene, its cloud stored in two frames
+        c, s_ = np.cos(angle), np.sin(angle)
+        G = np.array([[c, 0, s_, 1.0], [0, 1, 0, -2.0], [-s_, 0, c, 0.5], [0, 0, 0, 1]])
+        pair = _sensor_pair(d)
+        pair.points = cameras.transform(G, pair.points)
+        pair.T_pc_sensor, pair.T_cam_pc = G, cameras.invert(G)
+        results.append(pipeline.compute_features(pair, _FixedMono(mono), cfg, diffusion=False, geometric=True))
+    for feats in results:
+        lifted = cameras.lift(feats.uv_depth, cameras.nearest_sample(feats.view.dense, feats.uv_depth), K)
+        np.testing.assert_allclose(feats.geo_depth, lifted, atol=1e-9)  # camera frame, not G's
+    np.testing.assert_allclose(results[0].geo_depth, results[1].geo_depth, atol=1e-9)
+    assert not np.allclose(results[0].pts_depth, results[1].pts_depth)  # the keypoints stay in the cloud's frame
+
+
 def test_evaluation_lifts_the_depth_side_with_its_true_depth():
     d = np.full((24, 32), 2.0)
     d[:, :4] = 0.0  # a hole in the depth frame's true depth
