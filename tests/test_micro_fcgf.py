@@ -15,17 +15,18 @@ from freereg_lib.micro import train_fcgf as T  # noqa: E402
 
 
 def _pair(seed: int = 0, n: int = 500, size: float = 0.4) -> dict:
-    """Two views of one small box corner: the same surface sampled twice, B in its own frame."""
+    """Two views of one small box corner: the same surface sampled twice, B in its own camera's
+    frame, ``T`` its pose in A's."""
     rng = np.random.default_rng(seed)
     u, v = rng.uniform(0, size, (2, n))
     faces = np.stack([np.stack([u, v, 0 * u], 1), np.stack([u, 0 * u, v], 1), np.stack([0 * u, u, v], 1)])
     a = faces.reshape(-1, 3)
     R = T.random_rotation(np.random.default_rng(seed + 1))
-    T_cam_pc = np.eye(4)
-    T_cam_pc[:3, :3], T_cam_pc[:3, 3] = R, [0.1, -0.2, 0.3]
-    b_cam = a + rng.normal(0, 0.002, a.shape)
-    b = (b_cam - T_cam_pc[:3, 3]) @ R  # into the cloud frame: T_cam_pc maps it back
-    return {"a": MF_one(a), "b": MF_one(b), "T": T_cam_pc}
+    T_a_b = np.eye(4)
+    T_a_b[:3, :3], T_a_b[:3, 3] = R, [0.1, -0.2, 0.3]
+    b_in_a = a + rng.normal(0, 0.002, a.shape)
+    b = (b_in_a - T_a_b[:3, 3]) @ R  # into B's frame: T_a_b maps it back
+    return {"a": MF_one(a), "b": MF_one(b), "T": T_a_b}
 
 
 def MF_one(p):
@@ -69,8 +70,14 @@ def test_inference_frames_keep_the_positives_rigid():
     db = np.linalg.norm(b[:, None] - b[None], axis=-1)
     assert np.abs(da - db).max() < 2 * T.POS_RADIUS + 4 * np.sqrt(3) * T.VOXEL
     assert np.median(np.abs(da - db)) < 2 * T.VOXEL
-    # ... and the sides are not in one frame (the cloud side was turned about z).
+    # ... and each side stays in its own camera's frame, as the pipeline hands them to FCGF:
+    # the rotation between the crops is the pair's true one, with no turn added.
     assert np.median(np.linalg.norm(a - b, axis=1)) > 3 * T.VOXEL
+    u, _, vt = np.linalg.svd((a - a.mean(0)).T @ (b - b.mean(0)))
+    R_fit = u @ np.diag([1, 1, np.linalg.det(u @ vt)]) @ vt
+    R_true = _pair()["T"][:3, :3]
+    angle = np.degrees(np.arccos(np.clip((np.trace(R_fit.T @ R_true) - 1) / 2, -1, 1)))
+    assert angle < 3.0
 
 
 def test_hardest_contrastive_is_zero_for_perfect_features():

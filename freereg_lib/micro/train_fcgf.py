@@ -15,14 +15,15 @@ pipeline gives FCGF at inference (:func:`freereg_lib.pipeline.compute_features`)
 * image side: the image's depth (here the true one), range-limited and edge-filtered as the
   monocular map is, back-projected in the camera frame;
 * depth side: the pipeline's depth view of the cloud (projected, densified), back-projected
-  into the cloud's frame;
+  in the depth camera's frame (as the official code hands it to FCGF);
 
 each reduced to one point per 2.5 cm voxel. Positives are voxels within 1.5 voxels of each
 other under the true pose (FCGF's ``positive_pair_search_voxel_size_multiplier``).
 
 A step, as FCGF's 3DMatch training: one pair; a ball of ``--crop-radius`` around a random
-overlapping point cut from both clouds (a 2-core CPU cannot afford whole rooms); each side
-rotated uniformly at random (FCGF's ``rotation_range`` 360 deg) and the image side scaled by
+overlapping point cut from both clouds (a 2-core CPU cannot afford whole rooms); each side in
+its own camera's frame as at inference (``--rotations inference``, the default), or rotated
+uniformly at random (``so3``: FCGF's ``rotation_range`` 360 deg); the image side scaled by
 ``U(1 - s, 1 + s)`` (FCGF's ``use_random_scale``, on here with ``--scale-aug`` 0.1 because the
 image side is a monocular depth cloud at inference); both re-voxelised and passed through the
 network as one sparse batch. Loss: FCGF's ``HardestContrastiveLoss`` (positive margin 0.1,
@@ -44,6 +45,7 @@ from .fcgf import VOXEL, build, save
 from .views import progress_map
 
 TRAIN_STREAM = 0xF3EE_0002
+CACHE_FRAMES = "camera-camera"  # both clouds in their own camera's frame (older caches: cloud frame)
 POS_RADIUS = 1.5 * VOXEL  # FCGF: positive_pair_search_voxel_size_multiplier x voxel
 POS_MARGIN, NEG_MARGIN = 0.1, 1.4
 NUM_POS, NUM_HN = 1024, 256
@@ -62,7 +64,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--crop-radius", type=float, default=1.0, help="metres around the crop's centre")
     p.add_argument("--scale-aug", type=float, default=0.1, help="image-side scale drawn from U(1-s, 1+s)")
     p.add_argument("--rotations", choices=("inference", "so3"), default="inference",
-                   help="each side in its inference frame (cloud side turned about z), or FCGF's uniform SO(3)")
+                   help="each side in its own camera's frame, as at inference, or FCGF's uniform SO(3)")
     p.add_argument("--val-crops", type=int, default=1,
                    help="fixed crops per validation pair (the hit ratio of one crop a pair is noisy)")
     p.add_argument("--seed", type=int, default=0)
@@ -77,7 +79,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def pair_clouds(pair, cfg=None) -> tuple[np.ndarray, np.ndarray]:
     """The two clouds the pipeline hands FCGF for ``pair``, with the image side's true depth:
-    ``(image side (Na, 3) camera frame, depth side (Nb, 3) cloud frame)``, float64."""
+    ``(image side (Na, 3) image camera's frame, depth side (Nb, 3) depth camera's frame)``, float64."""
     from .. import cameras, projection
     from ..config import FreeRegConfig
     from ..pipeline import depth_view
@@ -88,8 +90,7 @@ def pair_clouds(pair, cfg=None) -> tuple[np.ndarray, np.ndarray]:
     if cfg.edge_filter_m > 0:
         d = projection.edge_filter(d, cfg.edge_filter_m)
     image_side = cameras.backproject(d, pair.K_image)[0]
-    dense = depth_view(pair, cfg).dense
-    depth_side = cameras.transform(pair.T_pc_sensor, cameras.backproject(dense, pair.K_depth)[0])
+    depth_side = cameras.backproject(depth_view(pair, cfg).dense, pair.K_depth)[0]
     return image_side, depth_side
 
 
@@ -106,29 +107,30 @@ def _training_pair(k: int) -> dict:
     pair = S.make_pair("indoor", seed=(TRAIN_STREAM, int(k)))
     a, b = pair_clouds(pair)
     return {"a": one_per_voxel(a).astype(np.float32), "b": one_per_voxel(b).astype(np.float32),
-            "T": pair.T_cam_pc}
+            "T": pair.T_cam_pc @ pair.T_pc_sensor}
 
 
 def training_pairs(n: int, first: int = 0, workers: int | None = None, progress: bool = True) -> list[dict]:
-    """Clouds of training pairs ``first .. first + n - 1``: ``a`` image side (camera frame),
-    ``b`` depth side (cloud frame), one point per voxel, float32; ``T`` the true ``T_cam_pc``."""
+    """Clouds of training pairs ``first .. first + n - 1``: ``a`` image side, ``b`` depth
+    side, each in its camera's frame, one point per voxel, float32; ``T`` the true pose of the
+    depth camera in the image camera (``T_cam_pc @ T_pc_sensor``)."""
     return progress_map(_training_pair, list(range(first, first + n)), workers, "rendering training pairs", "pair",
                         progress, chunksize=2)
 
 
 def load_or_make_pairs(path: Path, n: int, workers: int | None = None) -> list[dict]:
-    """The cached clouds of the first ``n`` pairs in ``path`` (made and saved when absent or
-    when the cache holds another count)."""
+    """The cached clouds of the first ``n`` pairs in ``path`` (made and saved when absent, or
+    when the cache holds another count or frames)."""
     path = Path(path)
     if path.exists():
         with np.load(path) as z:
-            if int(z["n"]) == n:
+            if int(z["n"]) == n and "frames" in z and str(z["frames"]) == CACHE_FRAMES:
                 return [{"a": z[f"a{k}"], "b": z[f"b{k}"], "T": z[f"T{k}"]} for k in range(n)]
     pairs = training_pairs(n, workers=workers)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp.npz")
     arrays = {f"{key}{k}": p[key] for k, p in enumerate(pairs) for key in ("a", "b", "T")}
-    np.savez(tmp, n=n, **arrays)
+    np.savez(tmp, n=n, frames=CACHE_FRAMES, **arrays)
     os.replace(tmp, path)
     return pairs
 
@@ -158,20 +160,13 @@ def positive_pairs(a: np.ndarray, b: np.ndarray, radius: float = POS_RADIUS) -> 
     return np.stack([i, j], axis=1)
 
 
-def yaw(angle: float) -> np.ndarray:
-    """The rotation by ``angle`` radians about z."""
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 def make_batch(pair: dict, rng: np.random.Generator, crop_radius: float, scale_aug: float,
                rotations: str = "inference") -> dict | None:
     """One training batch of a pair: voxel coordinates of both crops (``coords_a``,
     ``coords_b``) and their positive pairs; None when the crop holds no positive.
 
-    ``rotations``: ``"inference"`` keeps the image side in its camera frame and the cloud side
-    in its own frame (as the pipeline hands them to FCGF), the latter turned about its z axis
-    at random; ``"so3"`` rotates each side uniformly at random (FCGF's 3DMatch recipe)."""
+    ``rotations``: ``"inference"`` keeps each side in its own camera's frame, as the pipeline
+    hands them to FCGF; ``"so3"`` rotates each side uniformly at random (FCGF's 3DMatch recipe)."""
     from ..backends.fcgf import voxelize
 
     T = np.asarray(pair["T"], dtype=np.float64)
@@ -188,10 +183,10 @@ def make_batch(pair: dict, rng: np.random.Generator, crop_radius: float, scale_a
     if rotations == "so3":
         ra, rb = random_rotation(rng), random_rotation(rng)
         b_side = (b_cam - centre) @ rb.T
-    else:  # each side in its own frame, as at inference; the cloud side turned about its z axis
+    else:  # each side in its own camera's frame, as at inference
         ra = np.eye(3)
         b_own = np.asarray(pair["b"], dtype=np.float64)[in_b]
-        b_side = (b_own - b_own.mean(0)) @ yaw(rng.uniform(0, 2 * np.pi)).T
+        b_side = b_own - b_own.mean(0)
     coords_a, sel_a = voxelize(((a - centre) * scale) @ ra.T, VOXEL)
     coords_b, sel_b = voxelize(b_side, VOXEL)
     pos = positive_pairs(a[sel_a], b_cam[sel_b])
