@@ -58,8 +58,9 @@ def summarize(rows: list[dict], cfg) -> dict:
 def evaluate(n_pairs: int = 30, seed: int = 2026, weights_dir=None, progress: bool = True,
              which=("trained", "random"), **changes) -> dict:
     """The trained-vs-random comparison on ``n_pairs`` held-out pairs; ``changes`` override the
-    config (e.g. ``guidance_w``, ``t_hat``); ``which=("trained",)`` skips the random baseline
-    (a sweep of the trained model)."""
+    config (e.g. ``guidance_w``, ``t_hat``, or ``seed``: the diffusion noise, apart from the
+    pairs' ``seed``); ``which=("trained",)`` skips the random baseline (a sweep of the trained
+    model)."""
     from .. import pipeline, sources
     from ..backends import get_backend
     from ..config import FreeRegConfig
@@ -105,10 +106,13 @@ def main(argv=None) -> int:
     p.add_argument("--weights", default=None, help="micro weights folder (default: the committed ones)")
     p.add_argument("--guidance-w", type=float, default=None)
     p.add_argument("--t-hat", type=int, default=None)
+    p.add_argument("--noise-seed", type=int, default=None,
+                   help="the config's seed (the diffusion features' noise draws); default the config's")
     p.add_argument("--trained-only", action="store_true", help="skip the random-weight baseline (sweeps)")
     p.add_argument("--out", default=None, help="write the result as JSON here")
     args = p.parse_args(argv)
-    changes = {k: v for k, v in (("guidance_w", args.guidance_w), ("t_hat", args.t_hat)) if v is not None}
+    changes = {k: v for k, v in (("guidance_w", args.guidance_w), ("t_hat", args.t_hat), ("seed", args.noise_seed))
+               if v is not None}
     which = ("trained",) if args.trained_only else ("trained", "random")
     result = evaluate(args.pairs, args.seed, args.weights, which=which, **changes)
     print(report(result))

@@ -160,6 +160,8 @@ def run_stage(stage: str, trainable, loss_fn, val_fn, steps: int, lr: float, arg
             with torch.no_grad():
                 val = val_fn()
                 log["val"].append([done, val if isinstance(val, dict) else float(val)])
+            shown = ", ".join(f"{k} {v:.4f}" for k, v in val.items()) if isinstance(val, dict) else f"{float(val):.4f}"
+            bar.write(f"{stage} step {done}: validation {shown}")
             trainable.train()
             log["seconds"] += time.perf_counter() - t0
             t0 = time.perf_counter()
