@@ -231,3 +231,20 @@ def test_fcgf_card_states_the_rotations_trained_with_and_the_table9_verdict(tmp_
         text = card.write_fcgf_card(tmp_path).read_text()
         assert expected in text
         assert "cannot be told here (a tie at one end)" in text  # both solvers at 0 % on the tightest rung
+
+
+def test_image_side_chooses_the_cloud_of_the_batch():
+    # "cloud" crops the image camera's view of the cloud (here every other voxel of the image
+    # side), "depth" the image's own depth; "mix" draws both over a few steps.
+    pair = _pair()
+    pair["a_cloud"] = pair["a"][::2]
+
+    def n_image_voxels(side, seed):
+        return len(T.make_batch(pair, np.random.default_rng(seed), 0.5, 0.0, image_side=side)["coords_a"])
+
+    depth, cloud = n_image_voxels("depth", 4), n_image_voxels("cloud", 4)
+    assert cloud < 0.7 * depth
+    mixed = {n_image_voxels("mix", s) > 0.85 * depth for s in range(12)}
+    assert mixed == {True, False}
+    with pytest.raises(ValueError, match="image_side"):
+        T.make_batch(pair, np.random.default_rng(0), 0.5, 0.0, image_side="mono")

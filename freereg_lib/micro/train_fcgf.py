@@ -20,6 +20,11 @@ pipeline gives FCGF at inference (:func:`freereg_lib.pipeline.compute_features`)
 each reduced to one point per 2.5 cm voxel. Positives are voxels within 1.5 voxels of each
 other under the true pose (FCGF's ``positive_pair_search_voxel_size_multiplier``).
 
+``--image-side``: ``depth`` trains on the pairs above (the kinds FCGF meets at inference);
+``cloud`` replaces the image side by the cloud's view from the image camera, made as the depth
+side is (projected, densified, back-projected), so both sides are of one kind, as FCGF's
+3DMatch fragment pairs are; ``mix`` draws one of the two for each step.
+
 A step, as FCGF's 3DMatch training: one pair; a ball of ``--crop-radius`` around a random
 overlapping point cut from both clouds (a 2-core CPU cannot afford whole rooms); each side in
 its own camera's frame as at inference (``--rotations inference``, the default), or rotated
@@ -45,7 +50,8 @@ from .fcgf import VOXEL, build, save
 from .views import progress_map
 
 TRAIN_STREAM = 0xF3EE_0002
-CACHE_FRAMES = "camera-camera"  # both clouds in their own camera's frame (older caches: cloud frame)
+CACHE_FRAMES = "camera-camera+cloud-view"  # both clouds in their camera's frame, and the image camera's cloud view
+IMAGE_SIDES = ("depth", "cloud", "mix")
 POS_RADIUS = 1.5 * VOXEL  # FCGF: positive_pair_search_voxel_size_multiplier x voxel
 POS_MARGIN, NEG_MARGIN = 0.1, 1.4
 NUM_POS, NUM_HN = 1024, 256
@@ -65,6 +71,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--scale-aug", type=float, default=0.1, help="image-side scale drawn from U(1-s, 1+s)")
     p.add_argument("--rotations", choices=("inference", "so3"), default="inference",
                    help="each side in its own camera's frame, as at inference, or FCGF's uniform SO(3)")
+    p.add_argument("--image-side", choices=IMAGE_SIDES, default="depth",
+                   help="the image side's cloud: its depth (as at inference), the cloud's view from the image "
+                        "camera (the depth side's kind), or either, drawn per step")
     p.add_argument("--val-crops", type=int, default=1,
                    help="fixed crops per validation pair (the hit ratio of one crop a pair is noisy)")
     p.add_argument("--seed", type=int, default=0)
@@ -94,6 +103,21 @@ def pair_clouds(pair, cfg=None) -> tuple[np.ndarray, np.ndarray]:
     return image_side, depth_side
 
 
+def cloud_view_from_image_camera(pair, cfg=None) -> np.ndarray:
+    """The cloud as the pipeline would make a depth side of it from the image camera
+    (projected, densified, back-projected): ``(N, 3)`` float64 in the image camera's frame."""
+    from dataclasses import replace
+
+    from .. import cameras
+    from ..config import FreeRegConfig
+    from ..pipeline import depth_view
+
+    cfg = cfg or FreeRegConfig()
+    seen = replace(pair, K_depth=pair.K_image, depth_size=pair.image_size,
+                   T_pc_sensor=cameras.invert(pair.T_cam_pc), sensor_depth=None)
+    return cameras.backproject(depth_view(seen, cfg).dense, pair.K_image)[0]
+
+
 def one_per_voxel(points: np.ndarray, voxel: float = VOXEL) -> np.ndarray:
     """The first point of each voxel (FCGF's quantisation), ``(M, 3)``."""
     from ..backends.fcgf import voxelize
@@ -107,13 +131,15 @@ def _training_pair(k: int) -> dict:
     pair = S.make_pair("indoor", seed=(TRAIN_STREAM, int(k)))
     a, b = pair_clouds(pair)
     return {"a": one_per_voxel(a).astype(np.float32), "b": one_per_voxel(b).astype(np.float32),
+            "a_cloud": one_per_voxel(cloud_view_from_image_camera(pair)).astype(np.float32),
             "T": pair.T_cam_pc @ pair.T_pc_sensor}
 
 
 def training_pairs(n: int, first: int = 0, workers: int | None = None, progress: bool = True) -> list[dict]:
     """Clouds of training pairs ``first .. first + n - 1``: ``a`` image side, ``b`` depth
-    side, each in its camera's frame, one point per voxel, float32; ``T`` the true pose of the
-    depth camera in the image camera (``T_cam_pc @ T_pc_sensor``)."""
+    side, each in its camera's frame, ``a_cloud`` the cloud's view from the image camera
+    (:func:`cloud_view_from_image_camera`), one point per voxel, float32; ``T`` the true pose
+    of the depth camera in the image camera (``T_cam_pc @ T_pc_sensor``)."""
     return progress_map(_training_pair, list(range(first, first + n)), workers, "rendering training pairs", "pair",
                         progress, chunksize=2)
 
@@ -125,11 +151,11 @@ def load_or_make_pairs(path: Path, n: int, workers: int | None = None) -> list[d
     if path.exists():
         with np.load(path) as z:
             if int(z["n"]) == n and "frames" in z and str(z["frames"]) == CACHE_FRAMES:
-                return [{"a": z[f"a{k}"], "b": z[f"b{k}"], "T": z[f"T{k}"]} for k in range(n)]
+                return [{key: z[f"{key}{k}"] for key in ("a", "b", "a_cloud", "T")} for k in range(n)]
     pairs = training_pairs(n, workers=workers)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp.npz")
-    arrays = {f"{key}{k}": p[key] for k, p in enumerate(pairs) for key in ("a", "b", "T")}
+    arrays = {f"{key}{k}": p[key] for k, p in enumerate(pairs) for key in ("a", "b", "a_cloud", "T")}
     np.savez(tmp, n=n, frames=CACHE_FRAMES, **arrays)
     os.replace(tmp, path)
     return pairs
@@ -161,16 +187,22 @@ def positive_pairs(a: np.ndarray, b: np.ndarray, radius: float = POS_RADIUS) -> 
 
 
 def make_batch(pair: dict, rng: np.random.Generator, crop_radius: float, scale_aug: float,
-               rotations: str = "inference") -> dict | None:
+               rotations: str = "inference", image_side: str = "depth") -> dict | None:
     """One training batch of a pair: voxel coordinates of both crops (``coords_a``,
     ``coords_b``) and their positive pairs; None when the crop holds no positive.
 
     ``rotations``: ``"inference"`` keeps each side in its own camera's frame, as the pipeline
-    hands them to FCGF; ``"so3"`` rotates each side uniformly at random (FCGF's 3DMatch recipe)."""
+    hands them to FCGF; ``"so3"`` rotates each side uniformly at random (FCGF's 3DMatch recipe).
+    ``image_side``: the image side's cloud, ``"depth"`` (``pair["a"]``), ``"cloud"``
+    (``pair["a_cloud"]``) or ``"mix"`` (either, drawn from ``rng``)."""
     from ..backends.fcgf import voxelize
 
+    if image_side == "mix":
+        image_side = "cloud" if rng.random() < 0.5 else "depth"
+    if image_side not in ("depth", "cloud"):
+        raise ValueError(f"image_side must be one of {IMAGE_SIDES}, got {image_side!r}")
     T = np.asarray(pair["T"], dtype=np.float64)
-    a = np.asarray(pair["a"], dtype=np.float64)
+    a = np.asarray(pair["a" if image_side == "depth" else "a_cloud"], dtype=np.float64)
     b_cam = np.asarray(pair["b"], dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
     near = positive_pairs(a, b_cam)
     if len(near) == 0:
@@ -284,9 +316,9 @@ def main(argv=None) -> int:
           f"{int(sizes.mean())} on average", flush=True)
     net = build(args.seed)
 
-    def draw(rng, p):
+    def draw(rng, p, image_side=args.image_side):
         while True:
-            batch = make_batch(p(rng), rng, args.crop_radius, args.scale_aug, args.rotations)
+            batch = make_batch(p(rng), rng, args.crop_radius, args.scale_aug, args.rotations, image_side)
             if batch is not None:
                 return batch
 
@@ -295,20 +327,27 @@ def main(argv=None) -> int:
         fa, fb = forward_pair(net, batch)
         return hardest_contrastive(fa, fb, batch["pos"], g)
 
-    val_batches = []
-    for k, p in enumerate(val):
-        for c in range(args.val_crops):
-            rng = np.random.default_rng((args.seed, k) if c == 0 else (args.seed, k, c))
-            val_batches.append(draw(rng, lambda r, p=p: p))
+    # Validation crops always pair the kinds of inference (image side on its depth); a run on
+    # same-kind clouds also reports its hit ratio on same-kind crops of the same places.
+    kinds = {"": "depth"} if args.image_side == "depth" else {"": "depth", "_same_kind": "cloud"}
+    val_batches = {suffix: [] for suffix in kinds}
+    for suffix, side in kinds.items():
+        for k, p in enumerate(val):
+            for c in range(args.val_crops):
+                rng = np.random.default_rng((args.seed, k) if c == 0 else (args.seed, k, c))
+                val_batches[suffix].append(draw(rng, lambda r, p=p: p, side))
 
     def val_fn():
-        g = torch.Generator().manual_seed(0)
-        losses, hits = [], []
-        for batch in val_batches:
-            fa, fb = forward_pair(net, batch)
-            losses.append(float(hardest_contrastive(fa, fb, batch["pos"], g)))
-            hits.append(hit_ratio(fa, fb, batch["pos"], batch["coords_a"], batch["coords_b"]))
-        return {"loss": float(np.mean(losses)), "hit_ratio": float(np.mean(hits))}
+        out = {}
+        for suffix, batches in val_batches.items():
+            g = torch.Generator().manual_seed(0)
+            losses, hits = [], []
+            for batch in batches:
+                fa, fb = forward_pair(net, batch)
+                losses.append(float(hardest_contrastive(fa, fb, batch["pos"], g)))
+                hits.append(hit_ratio(fa, fb, batch["pos"], batch["coords_a"], batch["coords_b"]))
+            out.update({"loss" + suffix: float(np.mean(losses)), "hit_ratio" + suffix: float(np.mean(hits))})
+        return out
 
     log = run_stage("fcgf", net, loss_fn, val_fn, args.steps, args.lr, args, out)
     seconds = time.perf_counter() - t_start
