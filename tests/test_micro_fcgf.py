@@ -92,6 +92,20 @@ def test_hardest_contrastive_is_zero_for_perfect_features():
     assert float(swapped) > 1.0
 
 
+def test_hardest_contrastive_is_fcgfs_loss_on_a_hand_made_case():
+    # FCGF's positive term hinges the *squared* distance at 0.1: partners (1, 0) and (0.6, 0.8)
+    # are 0.8 apart squared, so 0.7; a side of one point has no negative (its hardest
+    # candidate is its own positive, masked out).
+    fa, fb = torch.tensor([[1.0, 0.0]]), torch.tensor([[0.6, 0.8]])
+    loss = T.hardest_contrastive(fa, fb, np.array([[0, 0]]), torch.Generator().manual_seed(0))
+    assert float(loss) == pytest.approx(0.7, abs=1e-6)
+    # Partners (0, 0) and (0, 1): 1 - 0.1 = 0.9. A's anchor is nearest to B's (0, 0.4), 0.4 away:
+    # (1.4 - 0.4)^2 = 1; B's anchor to A's (0, 0.5): (1.4 - 0.5)^2 = 0.81; the sides averaged.
+    fa2, fb2 = torch.tensor([[0.0, 0.0], [0.0, 0.5]]), torch.tensor([[0.0, 1.0], [0.0, 0.4]])
+    loss2 = T.hardest_contrastive(fa2, fb2, np.array([[0, 0]]), torch.Generator().manual_seed(0))
+    assert float(loss2) == pytest.approx(0.9 + (1.0 + 0.81) / 2, abs=1e-5)
+
+
 def test_a_few_steps_lower_the_loss_on_a_fixed_batch():
     net = MF.build(0).train()
     batch = T.make_batch(_pair(), np.random.default_rng(1), crop_radius=0.5, scale_aug=0.0)
@@ -113,7 +127,8 @@ def test_training_resumes_bit_identical(tmp_path):
     pairs = [_pair(0), _pair(1), _pair(2)]
     cache = tmp_path / "pairs.npz"
     arrays = {f"{k}{i}": p[k] for i, p in enumerate(pairs) for k in ("a", "b", "T")}
-    np.savez(cache, n=3, **arrays)
+    arrays.update({f"a_cloud{i}": p["a"] for i, p in enumerate(pairs)})
+    np.savez(cache, n=3, frames=T.CACHE_FRAMES, **arrays)
     common = ["--pairs", "2", "--pairs-file", str(cache), "--crop-radius", "0.3", "--threads", "1",
               "--checkpoint-every", "1", "--warmup", "2"]
     T.VAL_PAIRS = 1

@@ -242,11 +242,13 @@ def forward_pair(net, batch: dict):
 
 
 def hardest_contrastive(fa, fb, pos: np.ndarray, g, num_pos: int = NUM_POS, num_hn: int = NUM_HN):
-    """FCGF's ``HardestContrastiveLoss``: ``pos_loss + (neg_loss_a + neg_loss_b) / 2``.
+    """FCGF's ``contrastive_hardest_negative_loss``: ``pos_loss + (neg_loss_a + neg_loss_b) / 2``.
 
-    Positives (``pos`` index pairs, at most ``num_pos`` drawn) are pulled within
-    ``POS_MARGIN``; for each, the nearest of ``num_hn`` random candidates of the other side,
-    unless it is itself a positive of that point, is pushed beyond ``NEG_MARGIN``.
+    Positives (``pos`` index pairs, at most ``num_pos`` drawn) are pulled until their
+    *squared* feature distance is within ``POS_MARGIN`` (FCGF's ``pos_thresh``, applied to
+    ``|f_a - f_b|^2``); for each, the nearest of ``num_hn`` random candidates of the other
+    side, unless it is itself a positive of that point, is pushed beyond ``NEG_MARGIN`` in
+    distance, squared hinge.
     """
     import torch
 
@@ -268,7 +270,7 @@ def hardest_contrastive(fa, fb, pos: np.ndarray, g, num_pos: int = NUM_POS, num_
     min_ba, arg_ba = d_ba.min(1)
     mask_a = ~torch.isin(ia * nb + sel_b[arg_ab], pos_keys)
     mask_b = ~torch.isin(sel_a[arg_ba] * nb + ib, pos_keys)
-    pos_loss = torch.relu((fa[ia] - fb[ib]).norm(dim=1) - POS_MARGIN).pow(2).mean()
+    pos_loss = torch.relu((fa[ia] - fb[ib]).pow(2).sum(1) - POS_MARGIN).mean()
     neg_a = torch.relu(NEG_MARGIN - min_ab[mask_a]).pow(2).mean() if mask_a.any() else fa.sum() * 0
     neg_b = torch.relu(NEG_MARGIN - min_ba[mask_b]).pow(2).mean() if mask_b.any() else fa.sum() * 0
     return pos_loss + (neg_a + neg_b) / 2
