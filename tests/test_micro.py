@@ -134,3 +134,23 @@ def test_micro_backend_refuses_missing_weights_and_outdoor(tmp_path):
         get_backend("micro", FreeRegConfig(), weights_dir=tmp_path)
     with pytest.raises(ValueError, match="indoor"):
         get_backend("micro", config_for("kitti"))
+
+
+def test_diffusion_card_lists_further_evaluations_with_their_noise_seeds(tmp_path):
+    from freereg_lib.micro import card
+
+    def run(n, noise, p):
+        r = {"n_pairs": n, "IR": 8.5, "IR_ci": [5.8, 11.7], "FMR": 31.0, "FMR_ci": [22, 41], "RR": 4.0, "RR_ci": [1, 8]}
+        changes = {} if noise is None else {"seed": noise}
+        return {"seed": 2026, "config_changes": changes, "trained": r, "random": {**r, "IR": 2.1},
+                "IR_ratio": 8.5 / 2.1, "p_value": p}
+
+    assert card._more_evaluations(tmp_path) == []
+    (tmp_path / "eval_100pairs_noise0.json").write_text(json.dumps(run(100, None, 1 / 20001)))
+    (tmp_path / "eval_100pairs_noise1.json").write_text(json.dumps(run(100, 1, 0.039)))
+    (tmp_path / "eval_sweep.json").write_text(json.dumps({"seed": 2026, "trained": {}}))  # no baseline: skipped
+    rows = [line for line in card._more_evaluations(tmp_path) if line.startswith("| 100")]
+    assert rows == [
+        "| 100 (2026) | 0 | 8.5 [5.8, 11.7] | 31.0 | 4.0 | 2.1 [5.8, 11.7] | 4.05x | < 0.0001 |",
+        "| 100 (2026) | 1 | 8.5 [5.8, 11.7] | 31.0 | 4.0 | 2.1 [5.8, 11.7] | 4.05x | = 0.0390 |",
+    ]

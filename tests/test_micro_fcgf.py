@@ -263,3 +263,4 @@ def test_image_side_chooses_the_cloud_of_the_batch():
     assert mixed == {True, False}
     with pytest.raises(ValueError, match="image_side"):
         T.make_batch(pair, np.random.default_rng(0), 0.5, 0.0, image_side="mono")
+
