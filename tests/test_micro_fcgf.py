@@ -235,7 +235,7 @@ def test_fcgf_card_states_the_rotations_trained_with_and_the_table9_verdict(tmp_
              "micro (FPFH)": {"FreeReg-G kabsch": row}, "random weights (FCGF)": {"FreeReg-G kabsch": row},
              "micro (FCGF) label": "micro", "IR_ratio_trained_random": 1.0, "p_trained_vs_random": 0.5}
     (tmp_path / "eval.json").write_text(json.dumps({"n_pairs": 30, "seed": 2026, "chain": chain}))
-    for rotations, expected in (("inference", "in the frame the pipeline gives it"),
+    for rotations, expected in (("inference", "in the frame the pipeline gives it (its own camera's)"),
                                 ("so3", "rotated uniformly in SO(3)")):
         args = {"pairs": 2, "crop_radius": 0.6, "scale_aug": 0.1, "lr": 5e-4, "warmup": 1, "seed": 0,
                 "rotations": rotations}
@@ -246,6 +246,11 @@ def test_fcgf_card_states_the_rotations_trained_with_and_the_table9_verdict(tmp_
         text = card.write_fcgf_card(tmp_path).read_text()
         assert expected in text
         assert "cannot be told here (a tie at one end)" in text  # both solvers at 0 % on the tightest rung
+        assert "Image side:" not in text  # the default, the image's depth, is stated with the data
+    training = json.loads((tmp_path / "training.json").read_text())
+    training["arguments"]["image_side"] = "cloud"
+    (tmp_path / "training.json").write_text(json.dumps(training))
+    assert "Image side: the cloud's view from the image camera" in card.write_fcgf_card(tmp_path).read_text()
 
 
 def test_image_side_chooses_the_cloud_of_the_batch():

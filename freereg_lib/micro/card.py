@@ -169,6 +169,12 @@ def write_card(folder: Path = M.WEIGHTS_DIR) -> Path:
     return path
 
 
+IMAGE_SIDE_TEXT = {
+    "cloud": "the cloud's view from the image camera (projected, densified), the depth side's kind",
+    "mix": "the image's depth or the cloud's view from the image camera, drawn per step",
+}
+
+
 def plot_fcgf_training(training: dict, path: Path) -> None:
     import matplotlib
 
@@ -222,14 +228,16 @@ def write_fcgf_card(folder: Path = M.WEIGHTS_DIR / "fcgf") -> Path:
         f"- Data: {a['pairs']} synthetic indoor pairs, `{tr['train_stream']}`, a seed sequence no integer",
         f"  evaluation seed reproduces; validation: {tr['validation_pairs']}. Per pair the two clouds the",
         "  pipeline gives FCGF: the image's true depth (range-limited, edge-filtered) back-projected, and",
-        "  the densified depth view of the cloud back-projected; one point per 2.5 cm voxel (mean "
-        f"{tr['voxels_per_cloud_mean']} voxels a cloud).",
+        "  the densified depth view of the cloud back-projected, each in its own camera's frame; one point",
+        f"  per 2.5 cm voxel (mean {tr['voxels_per_cloud_mean']} voxels a cloud).",
+        *([f"- Image side: {IMAGE_SIDE_TEXT[a['image_side']]}."] if a.get("image_side", "depth") != "depth" else []),
         f"- Each step: a ball of {a['crop_radius']:g} m around a random overlapping point from both clouds,",
         ("  each rotated uniformly in SO(3)," if a.get("rotations") == "so3" else
-         "  each in the frame the pipeline gives it (the cloud side turned about z at random),")
+         "  each in the frame the pipeline gives it (its own camera's),")
         + f" the image side scaled by U({1 - a['scale_aug']:g}, {1 + a['scale_aug']:g}),",
-        "  re-voxelised, one sparse batch. FCGF's hardest-contrastive loss (margins 0.1 / 1.4, 1024",
-        "  positives within 1.5 voxels, 256 hardest-negative candidates a side).",
+        "  re-voxelised, one sparse batch. FCGF's hardest-contrastive loss (thresholds 0.1 on the squared",
+        "  positive distance and 1.4 on the negative one, 1024 positives within 1.5 voxels, 256",
+        "  hardest-negative candidates a side).",
         f"- {tr['steps']} steps, AdamW lr {a['lr']:g} (weight decay 0.01, {a['warmup']}-step warm-up, gradient",
         f"  norm clipped at 1), seed {a['seed']}; {tr['parameters_millions']} M parameters,"
         f" {size_mb:.1f} MB of float16 safetensors.",

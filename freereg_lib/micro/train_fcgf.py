@@ -31,8 +31,9 @@ its own camera's frame as at inference (``--rotations inference``, the default),
 uniformly at random (``so3``: FCGF's ``rotation_range`` 360 deg); the image side scaled by
 ``U(1 - s, 1 + s)`` (FCGF's ``use_random_scale``, on here with ``--scale-aug`` 0.1 because the
 image side is a monocular depth cloud at inference); both re-voxelised and passed through the
-network as one sparse batch. Loss: FCGF's ``HardestContrastiveLoss`` (positive margin 0.1,
-negative margin 1.4, 1024 positives, 256 hardest-negative candidates a side). Optimiser: AdamW
+network as one sparse batch. Loss: FCGF's hardest-contrastive loss (threshold 0.1 on the
+squared positive distance, 1.4 on the negative one, 1024 positives, 256 hardest-negative
+candidates a side). Optimiser: AdamW
 (:func:`~freereg_lib.micro.train_diffusion.run_stage`, seeded per step, checkpoints, resume),
 not FCGF's SGD: a few hundred steps, not 100 epochs.
 """
