@@ -243,7 +243,9 @@ def write_fcgf_card(folder: Path = M.WEIGHTS_DIR / "fcgf") -> Path:
         f" {size_mb:.1f} MB of float16 safetensors.",
         f"- Time on this 2-core CPU (shared with other training while it ran): {tr['step_seconds'] / 60:.0f} min"
         " of steps, plus rendering the pairs.",
-        f"- Last validation: loss {last['loss']:.3f}, hit ratio at 10 cm {100 * last['hit_ratio']:.1f} %.",
+        f"- Last validation: loss {last['loss']:.3f}, hit ratio at 10 cm {100 * last['hit_ratio']:.1f} %"
+        + (f" (on the same crops FPFH {100 * tr['val_baselines']['']['fpfh']:.1f} %, random features"
+           f" {100 * tr['val_baselines']['']['chance']:.1f} %)." if tr.get("val_baselines") else "."),
         "",
         "![training](training.png)",
         "",

@@ -190,7 +190,10 @@ def positive_pairs(a: np.ndarray, b: np.ndarray, radius: float = POS_RADIUS) -> 
 def make_batch(pair: dict, rng: np.random.Generator, crop_radius: float, scale_aug: float,
                rotations: str = "inference", image_side: str = "depth") -> dict | None:
     """One training batch of a pair: voxel coordinates of both crops (``coords_a``,
-    ``coords_b``) and their positive pairs; None when the crop holds no positive.
+    ``coords_b``), their positive pairs (``pos``), the crops' points (``points_a``,
+    ``points_b``, one per voxel) and each side's camera centre in its crop's frame
+    (``camera_a``, ``camera_b``: FPFH orients normals towards it); None when the crop holds
+    no positive.
 
     ``rotations``: ``"inference"`` keeps each side in its own camera's frame, as the pipeline
     hands them to FCGF; ``"so3"`` rotates each side uniformly at random (FCGF's 3DMatch recipe).
@@ -216,16 +219,44 @@ def make_batch(pair: dict, rng: np.random.Generator, crop_radius: float, scale_a
     if rotations == "so3":
         ra, rb = random_rotation(rng), random_rotation(rng)
         b_side = (b_cam - centre) @ rb.T
+        camera_b = (T[:3, 3] - centre) @ rb.T
     else:  # each side in its own camera's frame, as at inference
         ra = np.eye(3)
         b_own = np.asarray(pair["b"], dtype=np.float64)[in_b]
         b_side = b_own - b_own.mean(0)
-    coords_a, sel_a = voxelize(((a - centre) * scale) @ ra.T, VOXEL)
+        camera_b = -b_own.mean(0)
+    a_side = ((a - centre) * scale) @ ra.T
+    coords_a, sel_a = voxelize(a_side, VOXEL)
     coords_b, sel_b = voxelize(b_side, VOXEL)
     pos = positive_pairs(a[sel_a], b_cam[sel_b])
     if len(pos) == 0:
         return None
-    return {"coords_a": coords_a, "coords_b": coords_b, "pos": pos}
+    return {"coords_a": coords_a, "coords_b": coords_b, "pos": pos, "points_a": a_side[sel_a],
+            "points_b": b_side[sel_b], "camera_a": ((-centre) * scale) @ ra.T, "camera_b": camera_b}
+
+
+def baseline_hit_ratios(batches: list[dict], seed: int = 0) -> dict:
+    """What a trained network has to beat on ``batches``: the mean hit ratio of FPFH (the
+    pipeline's radii at its 5 cm FPFH voxel, normals facing each camera, computed on the
+    crops' voxels) and of random unit features (chance)."""
+    import torch
+
+    from ..config import FreeRegConfig
+    from ..geometric import fpfh_features
+
+    cfg = FreeRegConfig()
+    r_normal, r_feature = cfg.normal_radius_factor * cfg.fpfh_voxel, cfg.fpfh_radius_factor * cfg.fpfh_voxel
+    g = torch.Generator().manual_seed(seed)
+    fpfh, chance = [], []
+    for b in batches:
+        args = (b["pos"], b["coords_a"], b["coords_b"])
+        fa = fpfh_features(b["points_a"], 0, r_normal, r_feature, camera_location=b["camera_a"])[1]
+        fb = fpfh_features(b["points_b"], 0, r_normal, r_feature, camera_location=b["camera_b"])[1]
+        fpfh.append(hit_ratio(torch.from_numpy(fa.astype(np.float32)), torch.from_numpy(fb.astype(np.float32)), *args))
+        ra = torch.nn.functional.normalize(torch.randn(len(b["coords_a"]), 32, generator=g), dim=1)
+        rb = torch.nn.functional.normalize(torch.randn(len(b["coords_b"]), 32, generator=g), dim=1)
+        chance.append(hit_ratio(ra, rb, *args))
+    return {"fpfh": float(np.mean(fpfh)), "chance": float(np.mean(chance))}
 
 
 def forward_pair(net, batch: dict):
@@ -340,6 +371,11 @@ def main(argv=None) -> int:
                 rng = np.random.default_rng((args.seed, k) if c == 0 else (args.seed, k, c))
                 val_batches[suffix].append(draw(rng, lambda r, p=p: p, side))
 
+    baselines = {suffix: baseline_hit_ratios(batches) for suffix, batches in val_batches.items()}
+    for suffix, base in baselines.items():
+        print(f"validation crops{suffix.replace('_', ' ')}: hit ratio of FPFH {100 * base['fpfh']:.1f} %, "
+              f"of random features (chance) {100 * base['chance']:.1f} %", flush=True)
+
     def val_fn():
         out = {}
         for suffix, batches in val_batches.items():
@@ -365,6 +401,7 @@ def main(argv=None) -> int:
             "step_seconds": round(log["seconds"], 1),
             "last_run_seconds": round(seconds, 1),
             "steps": log["steps"], "loss": log["loss"], "val": log["val"],
+            "val_baselines": baselines,
         }
         print(f"weights written to {save(net, Path(args.export), facts)}", flush=True)
     print(f"total time {seconds / 60:.1f} min", flush=True)
