@@ -274,7 +274,6 @@ def test_image_side_chooses_the_cloud_of_the_batch():
         T.make_batch(pair, np.random.default_rng(0), 0.5, 0.0, image_side="mono")
 
 
-
 def test_fpfh_baseline_on_crops_beats_chance_on_a_rigid_copy():
     # B is A's surface moved rigidly: FPFH, rotation invariant with normals facing each camera,
     # finds far more true partners than random features do; the crops carry their cameras.

@@ -51,9 +51,12 @@ def _row(name: str, r: dict) -> str:
             f"{r['RR']:.1f} [{r['RR_ci'][0]:.1f}, {r['RR_ci'][1]:.1f}] |")
 
 
-def _p_text(p: float, n_perm: int = 20000) -> str:
-    """A permutation p-value, as a bound when no permutation reached the observed difference."""
-    return f"< {1 / n_perm:.4f}" if p <= 1.0 / (n_perm + 1) + 1e-12 else f"= {p:.4f}"
+def _p_text(p: float) -> str:
+    """A permutation p-value (:func:`.evaluate.paired_permutation_p`), as a bound when no
+    permutation reached the observed difference."""
+    from .evaluate import PERMUTATIONS
+
+    return f"< {1 / PERMUTATIONS:.4f}" if p <= 1.0 / (PERMUTATIONS + 1) + 1e-12 else f"= {p:.4f}"
 
 
 def _more_evaluations(folder: Path) -> list[str]:

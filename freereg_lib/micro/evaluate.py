@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 VARIANT = ("FreeReg-D", "pnp")
+PERMUTATIONS = 20000  # sign flips of the paired test; its smallest p is 1 / (PERMUTATIONS + 1)
 
 
 def bootstrap_ci(values, stat=np.mean, n: int = 2000, seed: int = 0) -> tuple[float, float]:
@@ -31,7 +32,7 @@ def bootstrap_ci(values, stat=np.mean, n: int = 2000, seed: int = 0) -> tuple[fl
     return float(np.percentile(stats, 2.5)), float(np.percentile(stats, 97.5))
 
 
-def paired_permutation_p(a, b, n: int = 20000, seed: int = 0) -> float:
+def paired_permutation_p(a, b, n: int = PERMUTATIONS, seed: int = 0) -> float:
     """Two-sided p-value of mean(a - b) = 0 under random sign flips of the paired differences."""
     d = np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64)
     if not np.any(d):
