@@ -104,6 +104,30 @@ def test_export_needs_every_stage(tmp_path):
                 "--export", str(tmp_path / "w"), "--threads", "1"])
 
 
+def test_init_from_continues_one_stage_and_keeps_the_others(tmp_path):
+    np.savez(tmp_path / "views.npz", n_scenes=2, views_per_scene=4, **_views())
+    common = ["--views", str(tmp_path / "views.npz"), "--scenes", "2", "--views-per-scene", "4",
+              "--batch", "2", "--checkpoint-every", "2", "--threads", "1", "--warmup", "1"]
+    T.main(common + ["--out", str(tmp_path / "a"), "--steps-vae", "2", "--steps-unet", "2",
+                     "--steps-controlnet", "2", "--export", str(tmp_path / "w")])
+    T.main(common + ["--out", str(tmp_path / "b"), "--init-from", str(tmp_path / "w"), "--stages", "controlnet",
+                     "--steps-controlnet", "4", "--export", str(tmp_path / "w2")])
+    first = json.loads((tmp_path / "w/training.json").read_text())["stages"]
+    cont = json.loads((tmp_path / "w2/training.json").read_text())["stages"]
+    assert cont["vae"] == first["vae"] and cont["unet"] == first["unet"]
+    assert len(cont["controlnet"]["loss"]) == 4 and cont["controlnet"]["steps"] == 4
+    assert cont["controlnet"]["loss"][:2] == first["controlnet"]["loss"]
+    assert [v[0] for v in cont["controlnet"]["val"]] == [2, 4]
+    a, b = M.load(tmp_path / "w"), M.load(tmp_path / "w2")
+    assert a["vae"].config.scaling_factor == b["vae"].config.scaling_factor
+    for part in ("vae", "unet"):
+        for (k, v), w in zip(a[part].state_dict().items(), b[part].state_dict().values()):
+            assert torch.equal(v, w), (part, k)
+    moved = [not torch.equal(v, w) for v, w in zip(a["controlnet"].state_dict().values(),
+                                                  b["controlnet"].state_dict().values())]
+    assert any(moved)
+
+
 # ---------------------------------------------------------------------------- backend
 
 def test_micro_backend_loads_the_committed_weights_and_the_hint_acts():

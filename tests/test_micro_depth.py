@@ -89,6 +89,39 @@ def test_resume_is_bit_identical(data, tmp_path, monkeypatch):
     assert all(torch.equal(a[k], b[k]) for k in a)
 
 
+def test_a_continuation_goes_on_from_the_earlier_log_and_resumes_bit_identically(data, tmp_path, monkeypatch):
+    import copy
+
+    first = MD.build(0)
+    earlier = T.train(first, data, _args(tmp_path, 2, batch=2), tmp_path / "first", progress=False)
+    args = _args(tmp_path, 4, batch=2)
+    straight = copy.deepcopy(first)
+    log = T.train(straight, data, args, tmp_path / "a", progress=False, initial_log=earlier)
+    assert log["continued_from"] == 2 and len(log["loss"]) == 4
+    assert log["loss"][:2] == earlier["loss"] and [v[0] for v in log["val_mae"]] == [2, 4]
+
+    calls = {"n": 0}
+    real_loss = T.depth_loss
+
+    def interrupted(*a, **k):
+        calls["n"] += 1
+        if calls["n"] == 2:  # the continuation's second step (step 3), after its step-3 checkpoint
+            raise KeyboardInterrupt
+        return real_loss(*a, **k)
+
+    monkeypatch.setattr(T, "depth_loss", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        T.train(copy.deepcopy(first), data, _args(tmp_path, 4, batch=2, checkpoint_every=3), tmp_path / "b",
+                progress=False, initial_log=earlier)
+    monkeypatch.setattr(T, "depth_loss", real_loss)
+    # Run b resumes from its step-3 checkpoint (the warm restart's schedule from its log).
+    resumed = copy.deepcopy(first)
+    log_b = T.train(resumed, data, args, tmp_path / "b", progress=False, initial_log=earlier)
+    assert log_b["loss"] == log["loss"]
+    a, b = straight.state_dict(), resumed.state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
 def test_save_load_round_trip(tmp_path):
     model = MD.build(1).eval()
     MD.save(model, tmp_path)

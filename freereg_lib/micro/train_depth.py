@@ -30,7 +30,8 @@ the loss, as the flip average does at inference).
 
 Seeded (a step's batch, flips and dropout draws depend only on ``(seed, step)``), checkpoints every
 ``--checkpoint-every`` steps to ``OUT/depth/checkpoint.pt`` and resumes from it when run again.
-AdamW, linear warm-up then cosine decay to 10 %. ``--export`` writes the weights
+AdamW, linear warm-up then cosine decay to 10 %. ``--init-from FOLDER`` continues an exported model
+from its step count (a warm restart; the export's ``schedule_history`` records it). ``--export`` writes the weights
 (:func:`.depth.save`) and ``training.json`` (arguments, steps, seconds, losses, validation MAE).
 """
 from __future__ import annotations
@@ -67,6 +68,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--checkpoint-every", type=int, default=100)
     p.add_argument("--threads", type=int, default=1, help="torch threads (the machine is shared: 1)")
     p.add_argument("--export", default=None, help="write the trained weights to this folder")
+    p.add_argument("--init-from", default=None,
+                   help="continue an exported folder (its weights and training.json) from its step count to "
+                        "--steps, with a fresh AdamW: warm-up again, then cosine to 10 %% over the new steps")
     return p.parse_args(argv)
 
 
@@ -189,24 +193,33 @@ def lr_factor(step: int, steps: int, warmup: int) -> float:
     return 0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * min(frac, 1.0)))
 
 
-def train(model, data: Data, args, out: Path, progress: bool = True) -> dict:
-    """Seeded, resumable training; returns the log (losses per step, validation MAE, seconds)."""
+def train(model, data: Data, args, out: Path, progress: bool = True, initial_log: dict | None = None) -> dict:
+    """Seeded, resumable training; returns the log (losses per step, validation MAE, seconds).
+
+    ``initial_log`` (the log of the training that made ``model``'s weights) continues it: the
+    steps go on from ``len(initial_log["loss"])`` (the log's ``continued_from``), drawing what an
+    uninterrupted run draws at those steps, under a new warm-up and cosine over the new steps."""
     import torch
 
     folder = Path(out) / "depth"
     folder.mkdir(parents=True, exist_ok=True)
     ckpt = folder / "checkpoint.pt"
-    opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-2)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, args.steps, args.warmup))
     log = {"loss": [], "val_mae": [], "seconds": 0.0, "steps": args.steps}
-    start = 0
-    if ckpt.exists():
-        state = torch.load(ckpt, map_location="cpu", weights_only=False)
+    if initial_log is not None:
+        log = {**initial_log, "loss": list(initial_log["loss"]), "val_mae": list(initial_log["val_mae"]),
+               "steps": args.steps, "continued_from": len(initial_log["loss"])}
+    start = len(log["loss"])
+    state = torch.load(ckpt, map_location="cpu", weights_only=False) if ckpt.exists() else None
+    if state is not None:
+        log, start = state["log"], state["step"]
+        log["steps"] = args.steps
+    first = log.get("continued_from", 0)
+    opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-2)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, args.steps - first, args.warmup))
+    if state is not None:
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         sched.load_state_dict(state["scheduler"])
-        log, start = state["log"], state["step"]
-        log["steps"] = args.steps
     if start >= args.steps:
         return log
 
@@ -271,8 +284,19 @@ def main(argv=None) -> int:
     data = Data(cached_pixels(views, out), views["depth"], args.views_per_scene)
     print(f"{len(data.pixels)} views ({data.n_train} training, {len(data.val)} validation), pixel values "
           f"{tuple(data.pixels.shape[1:])}, true depth {tuple(data.depth.shape[1:])}", flush=True)
-    model = MD.build(args.seed)
-    log = train(model, data, args, out)
+    earlier = None
+    if args.init_from:
+        import torch
+        from transformers import ZoeDepthForDepthEstimation
+
+        model = ZoeDepthForDepthEstimation.from_pretrained(args.init_from, torch_dtype=torch.float32)
+        earlier = json.loads(Path(args.init_from, "training.json").read_text())
+        print(f"continuing {args.init_from} from step {len(earlier['loss_per_step'])}", flush=True)
+        initial = {"loss": earlier["loss_per_step"], "val_mae": earlier["val_mae"],
+                   "seconds": earlier["step_seconds"], "steps": args.steps}
+    else:
+        model, initial = MD.build(args.seed), None
+    log = train(model, data, args, out, initial_log=initial)
     seconds = time.perf_counter() - t_start
     if args.export:
         MD.save(model, args.export)
@@ -288,6 +312,13 @@ def main(argv=None) -> int:
             "loss_per_step": log["loss"],
             "val_mae": log["val_mae"],
         }
+        if earlier is not None:
+            before = earlier.get("schedule_history") or (
+                f"steps 0-{log['continued_from']} on {earlier['arguments']['scenes']} rooms")
+            facts["schedule_history"] = (
+                f"{before}; then steps {log['continued_from']}-{log['steps']} continued with --init-from on "
+                f"{args.scenes} rooms x {args.views_per_scene} views, a fresh AdamW (warm-up {args.warmup}, "
+                f"cosine to 10 % over the {log['steps'] - log['continued_from']} new steps)")
         Path(args.export, "training.json").write_text(json.dumps(facts) + "\n")
         print(f"weights written to {args.export}", flush=True)
     print(f"total time {seconds / 60:.1f} min", flush=True)

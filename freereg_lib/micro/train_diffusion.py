@@ -3,6 +3,8 @@
     python -m freereg_lib.micro.train_diffusion [--out runs/micro/train] [--scenes 500]
         [--steps-vae 700] [--steps-unet 2000] [--steps-controlnet 1200] [--batch 16]
         [--export freereg_lib/micro/weights]
+    python -m freereg_lib.micro.train_diffusion --init-from freereg_lib/micro/weights \
+        --stages controlnet --steps-controlnet 3000 --export runs/micro/weights_next
 
 The stages follow Stable Diffusion's recipe in miniature:
 
@@ -19,7 +21,10 @@ The stages follow Stable Diffusion's recipe in miniature:
 
 Every stage is seeded (a step's batch, flips, noise and timesteps depend only on the seed and
 the step number), checkpoints every ``--checkpoint-every`` steps and resumes from its last
-checkpoint when run again; a finished stage is skipped. ``--export`` writes the weights and
+checkpoint when run again; a finished stage is skipped. ``--init-from`` continues an exported
+folder instead of starting from scratch: the stages named in ``--stages`` train on from their
+weights and step counts there (float16 weights, a fresh optimizer), the others are kept as they
+are. ``--export`` writes the weights and
 ``training.json`` (arguments, steps, times, loss curves) for the model card.
 """
 from __future__ import annotations
@@ -62,6 +67,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--checkpoint-every", type=int, default=100)
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
     p.add_argument("--export", default=None, help="write the trained weights to this folder")
+    p.add_argument("--init-from", default=None,
+                   help="continue from an exported weights folder (its training.json gives each stage's "
+                        "steps and log): stages left out of --stages are taken from it as they are; a "
+                        "stage in --stages starts from its weights there and trains on from its step "
+                        "count with a fresh optimizer (a warm restart: warm-up again, then --lr-*)")
     return p.parse_args(argv)
 
 
@@ -109,11 +119,15 @@ def step_rng(seed: int, stage: str, step: int) -> tuple[np.random.Generator, "ob
     return np.random.default_rng(ss), g
 
 
-def run_stage(stage: str, trainable, loss_fn, val_fn, steps: int, lr: float, args, out: Path) -> dict:
+def run_stage(stage: str, trainable, loss_fn, val_fn, steps: int, lr: float, args, out: Path,
+              initial_log: dict | None = None) -> dict:
     """Seeded, resumable training of ``trainable`` (an ``nn.Module``) for ``steps`` steps.
 
     ``loss_fn(rng, g)`` returns the training loss of one step; ``val_fn()`` the validation
     loss (or a dict of validation numbers). Returns the stage's log: losses per step, validation losses, seconds.
+    ``initial_log`` (the log of earlier training of ``trainable``'s current weights) makes the
+    run continue at step ``len(initial_log["loss"])`` with a fresh optimizer, when there is no
+    checkpoint yet; the step's draws are those an uninterrupted run makes at that step.
     """
     import torch
 
@@ -125,6 +139,9 @@ def run_stage(stage: str, trainable, loss_fn, val_fn, steps: int, lr: float, arg
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: min(1.0, (s + 1) / max(args.warmup, 1)))
     log = {"loss": [], "val": [], "seconds": 0.0, "steps": steps}
     start = 0
+    if initial_log is not None:
+        log = {**initial_log, "loss": list(initial_log["loss"]), "val": list(initial_log["val"]), "steps": steps}
+        start = len(log["loss"])
     if ckpt.exists():
         state = torch.load(ckpt, map_location="cpu", weights_only=False)
         trainable.load_state_dict(state["model"])
@@ -180,7 +197,7 @@ def noise_schedule():
                          beta_schedule="scaled_linear", prediction_type="epsilon", clip_sample=False)
 
 
-def train_vae(models, data: Data, args, out: Path) -> dict:
+def train_vae(models, data: Data, args, out: Path, initial_log: dict | None = None) -> dict:
     import torch
 
     vae = models["vae"]
@@ -204,7 +221,7 @@ def train_vae(models, data: Data, args, out: Path) -> dict:
         g = torch.Generator().manual_seed(args.seed)
         return np.mean([float(loss_of(data.rgb[i:i + 16], g)) for i in data.val[::16]])
 
-    log = run_stage("vae", vae, loss_fn, val_fn, args.steps_vae, args.lr_vae, args, out)
+    log = run_stage("vae", vae, loss_fn, val_fn, args.steps_vae, args.lr_vae, args, out, initial_log)
     return log
 
 
@@ -333,6 +350,13 @@ def export(models, logs: dict, args, out_dir: Path, seconds: float) -> None:
     (out_dir / "training.json").write_text(json.dumps(facts) + "\n")
 
 
+def init_from(folder: Path) -> tuple[dict, dict]:
+    """The models and per-stage logs of an exported folder (``--init-from``)."""
+    facts = json.loads((folder / "training.json").read_text())
+    models = M.load(folder)
+    return models, {k: facts["stages"][k] for k in STAGES}
+
+
 def main(argv=None) -> int:
     import torch
 
@@ -345,44 +369,54 @@ def main(argv=None) -> int:
     data = Data(views, args.views_per_scene)
     print(f"{len(data.rgb)} views ({data.n_train} training, {len(data.val)} validation) of "
           f"{args.scenes} rooms, {tuple(data.rgb.shape[2:])} pixels", flush=True)
-    models = M.build(args.seed)
+    if args.init_from:
+        models, earlier = init_from(Path(args.init_from))
+        print(f"continuing from {args.init_from}: " + ", ".join(
+            f"{k} at step {len(v['loss'])}" for k, v in earlier.items()), flush=True)
+    else:
+        models, earlier = M.build(args.seed), {}
     freeze(models["text_encoder"])
-    logs = {}
-    # Earlier stages than the last one asked for are loaded from their checkpoints.
+    # Stages not trained now come from --init-from, else from their checkpoints.
+    logs = {k: v for k, v in earlier.items() if k not in args.stages}
     last = max(STAGES.index(s) for s in args.stages)
 
     if "vae" in args.stages:
-        logs["vae"] = train_vae(models, data, args, out)
-    else:
+        logs["vae"] = train_vae(models, data, args, out, earlier.get("vae"))
+    elif not earlier:
         load_stage_weights("vae", models["vae"], out)
     freeze(models["vae"])
     if last == 0:
         return _finish(models, logs, args, t_start)
     latents = encode_latents(models["vae"], data.rgb)
-    factor = set_scaling_factor(models["vae"], *latents)
+    if "vae" in args.stages or not earlier:
+        factor = set_scaling_factor(models["vae"], *latents)
+    else:  # the UNet was trained on latents scaled by the folder's factor
+        factor = models["vae"].config.scaling_factor
     print(f"VAE scaling factor {factor:.4f} (SD v1.5: 0.18215)", flush=True)
 
     den = Denoising(models, data, latents, args)
     if "unet" in args.stages:
         logs["unet"] = run_stage("unet", models["unet"], lambda r, g: den.train_loss(r, g, False),
-                                 lambda: den.val_loss(False), args.steps_unet, args.lr_unet, args, out)
-    else:
+                                 lambda: den.val_loss(False), args.steps_unet, args.lr_unet, args, out,
+                                 earlier.get("unet"))
+    elif not earlier:
         load_stage_weights("unet", models["unet"], out)
     freeze(models["unet"])
     if last == 1:
         return _finish(models, logs, args, t_start)
 
     if "controlnet" in args.stages:
-        # Built from the trained UNet's encoder, as ControlNet is from SD's.
-        from diffusers import ControlNetModel
+        if "controlnet" not in earlier:
+            # Built from the trained UNet's encoder, as ControlNet is from SD's.
+            from diffusers import ControlNetModel
 
-        models["controlnet"] = ControlNetModel.from_unet(
-            models["unet"], conditioning_embedding_out_channels=M.CONTROLNET_EMBEDDING)
-        den.controlnet = models["controlnet"]
+            models["controlnet"] = ControlNetModel.from_unet(
+                models["unet"], conditioning_embedding_out_channels=M.CONTROLNET_EMBEDDING)
+            den.controlnet = models["controlnet"]
         logs["controlnet"] = run_stage("controlnet", models["controlnet"], lambda r, g: den.train_loss(r, g, True),
                                        lambda: den.val_loss(True), args.steps_controlnet, args.lr_controlnet,
-                                       args, out)
-    else:
+                                       args, out, earlier.get("controlnet"))
+    elif not earlier:
         load_stage_weights("controlnet", models["controlnet"], out)
     freeze(models["controlnet"])
     return _finish(models, logs, args, t_start)
