@@ -1,13 +1,15 @@
 """Held-out quality of the micro diffusion models: trained weights against random ones.
 
     python -m freereg_lib.micro.evaluate [--pairs 30] [--seed 2026] [--weights DIR]
-        [--guidance-w 4.0] [--t-hat 150] [--trained-only] [--out eval.json]
+        [--guidance-w 4.0] [--t-hat 150] [--trained-only] [--random-from eval.json] [--out eval.json]
 
 Runs FreeReg-D (decoder layers 0, 4, 6; PnP-RANSAC) through :func:`freereg_lib.pipeline.run_pairs`
 on synthetic indoor pairs made from integer seeds, which the training rooms (a two-word seed
 sequence, :mod:`.views`) never use, once with the ``micro`` backend's trained weights and
 once with the same architecture's random weights. Prints IR, FMR and RR with 95 % bootstrap
 intervals over pairs, the ratio of the mean IRs and a paired sign-flip permutation test.
+``--random-from`` takes the random-weight run from an earlier result of the same pairs, noise
+seed and config (the random weights do not change when the trained ones do).
 """
 from __future__ import annotations
 
@@ -56,12 +58,26 @@ def summarize(rows: list[dict], cfg) -> dict:
     return out
 
 
+def reuse_random(earlier: dict, n_pairs: int, seed: int, changes: dict, source: str = "the earlier result") -> dict:
+    """The ``random`` entry of an earlier :func:`evaluate` result, checked to be of the same
+    pairs, pair seed and config changes (noise seed included)."""
+    if "random" not in earlier:
+        raise ValueError(f"{source} holds no random-weight run")
+    got = (earlier["random"]["n_pairs"], earlier["seed"], earlier["config_changes"])
+    want = (n_pairs, seed, json.loads(json.dumps(changes)))
+    if got != want:
+        raise ValueError(f"{source} is of (pairs, seed, config changes) = {got}, this run of {want}")
+    return earlier["random"]
+
+
 def evaluate(n_pairs: int = 30, seed: int = 2026, weights_dir=None, progress: bool = True,
-             which=("trained", "random"), noise_seed: int | None = None, **changes) -> dict:
+             which=("trained", "random"), noise_seed: int | None = None, random_result: dict | None = None,
+             **changes) -> dict:
     """The trained-vs-random comparison on ``n_pairs`` held-out pairs drawn from ``seed``;
     ``changes`` override the config (e.g. ``guidance_w``, ``t_hat``); ``noise_seed`` sets the
     config's seed (the diffusion features' noise draws); ``which=("trained",)`` skips the
-    random baseline (a sweep of the trained model)."""
+    random baseline (a sweep of the trained model); ``random_result`` (an earlier result's
+    ``random`` entry, see :func:`reuse_random`) stands in for running it again."""
     from .. import pipeline, sources
     from ..backends import get_backend
     from ..config import FreeRegConfig
@@ -71,13 +87,16 @@ def evaluate(n_pairs: int = 30, seed: int = 2026, weights_dir=None, progress: bo
     cfg = FreeRegConfig().override(**changes) if changes else FreeRegConfig()
     pairs = list(sources.iter_pairs("synthetic_indoor", n_pairs, seed=seed))
     result = {"seed": seed, "config_changes": changes}
+    if random_result is not None:
+        result["random"] = random_result
+        which = tuple(w for w in which if w != "random")
     for name, kw in (("trained", {"weights_dir": weights_dir}), ("random", {"random_weights": True})):
         if name not in which:
             continue
         backend = get_backend("micro", cfg, device="cpu", **kw)
         rows = pipeline.run_pairs(pairs, backend, cfg, [VARIANT], progress=progress)
         result[name] = summarize(rows, cfg)
-    if len(which) < 2:
+    if "trained" not in result or "random" not in result:
         return result
     a, b = result["trained"]["IR_per_pair"], result["random"]["IR_per_pair"]
     result["IR_ratio"] = result["trained"]["IR"] / max(result["random"]["IR"], 1e-9)
@@ -112,11 +131,20 @@ def main(argv=None) -> int:
     p.add_argument("--noise-seed", type=int, default=None,
                    help="the config's seed (the diffusion features' noise draws); default the config's")
     p.add_argument("--trained-only", action="store_true", help="skip the random-weight baseline (sweeps)")
+    p.add_argument("--random-from", default=None,
+                   help="an earlier result (JSON) of the same pairs, noise seed and config whose random-weight "
+                        "run is reused instead of run again")
     p.add_argument("--out", default=None, help="write the result as JSON here")
     args = p.parse_args(argv)
     changes = {k: v for k, v in (("guidance_w", args.guidance_w), ("t_hat", args.t_hat)) if v is not None}
     which = ("trained",) if args.trained_only else ("trained", "random")
-    result = evaluate(args.pairs, args.seed, args.weights, which=which, noise_seed=args.noise_seed, **changes)
+    random_result = None
+    if args.random_from:
+        run_changes = {**changes, "seed": args.noise_seed} if args.noise_seed is not None else changes
+        random_result = reuse_random(json.loads(Path(args.random_from).read_text()), args.pairs, args.seed,
+                                     run_changes, args.random_from)
+    result = evaluate(args.pairs, args.seed, args.weights, which=which, noise_seed=args.noise_seed,
+                      random_result=random_result, **changes)
     print(report(result))
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)

@@ -1,0 +1,46 @@
+"""The micro models' held-out comparison (freereg_lib.micro.evaluate): its statistics on
+hand-made numbers, and the reuse of an earlier random-weight run only where it is comparable."""
+from __future__ import annotations
+
+import pytest
+
+from freereg_lib.micro import evaluate as E
+
+
+def test_bootstrap_and_permutation_on_hand_made_numbers():
+    assert E.bootstrap_ci([0.25] * 7) == (0.25, 0.25)
+    assert E.paired_permutation_p([0.1, 0.2], [0.1, 0.2]) == 1.0
+    # Six equal positive differences: only the two all-same sign patterns of 64 reach |mean|.
+    p = E.paired_permutation_p([1.0] * 6, [0.0] * 6, n=20000)
+    assert p == pytest.approx(2 / 64, abs=0.006)
+    # A difference that flips sign half the time is no evidence.
+    assert E.paired_permutation_p([1.0, 0.0, 1.0, 0.0], [0.0, 1.0, 0.0, 1.0]) == 1.0
+
+
+def _earlier(n_pairs=2, seed=2026, changes=None):
+    return {"seed": seed, "config_changes": changes or {},
+            "random": {"n_pairs": n_pairs, "IR": 2.0, "IR_per_pair": [0.0, 0.04][:n_pairs]}}
+
+
+def test_reuse_random_takes_only_a_run_of_the_same_pairs_and_config():
+    earlier = _earlier(changes={"seed": 1})
+    assert E.reuse_random(earlier, 2, 2026, {"seed": 1}) is earlier["random"]
+    with pytest.raises(ValueError, match="n_pairs|pairs"):
+        E.reuse_random(earlier, 3, 2026, {"seed": 1})
+    with pytest.raises(ValueError, match="config changes"):
+        E.reuse_random(earlier, 2, 2026, {"seed": 2})  # another noise seed: other random weights
+    with pytest.raises(ValueError, match="seed"):
+        E.reuse_random(earlier, 2, 7, {"seed": 1})
+    with pytest.raises(ValueError, match="no random-weight run"):
+        E.reuse_random({"seed": 2026, "config_changes": {}}, 2, 2026, {})
+
+
+def test_evaluate_with_a_reused_random_run_compares_against_it():
+    pytest.importorskip("torch")
+    earlier = _earlier(n_pairs=1)
+    out = E.evaluate(1, 2026, progress=False, random_result=earlier["random"])
+    assert out["random"] is earlier["random"]
+    ir = out["trained"]["IR_per_pair"]
+    assert len(ir) == 1
+    assert out["IR_ratio"] == pytest.approx(out["trained"]["IR"] / 2.0)
+    assert out["p_value"] == 1.0  # one pair: both signs of its difference reach |mean|
