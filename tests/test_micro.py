@@ -115,6 +115,8 @@ def test_init_from_continues_one_stage_and_keeps_the_others(tmp_path):
     first = json.loads((tmp_path / "w/training.json").read_text())["stages"]
     cont = json.loads((tmp_path / "w2/training.json").read_text())["stages"]
     assert cont["vae"] == first["vae"] and cont["unet"] == first["unet"]
+    history = json.loads((tmp_path / "w2/training.json").read_text())["history"]
+    assert "controlnet from step 2 to 4" in history, history
     assert len(cont["controlnet"]["loss"]) == 4 and cont["controlnet"]["steps"] == 4
     assert cont["controlnet"]["loss"][:2] == first["controlnet"]["loss"]
     assert [v[0] for v in cont["controlnet"]["val"]] == [2, 4]

@@ -347,6 +347,15 @@ def export(models, logs: dict, args, out_dir: Path, seconds: float) -> None:
         "stages": {k: {"steps": v["steps"], "seconds": round(v["seconds"], 1), "loss": v["loss"], "val": v["val"]}
                    for k, v in logs.items()},
     }
+    if args.init_from:
+        earlier = json.loads(Path(args.init_from, "training.json").read_text())
+        went_on = ", ".join(f"{k} from step {len(earlier['stages'][k]['loss'])} to {logs[k]['steps']}"
+                            for k in args.stages)
+        facts["history"] = " ".join(filter(None, [
+            earlier.get("history", ""),
+            f"Continued with --init-from {args.init_from} on {args.scenes} rooms: {went_on} (its float16 weights, "
+            f"a fresh AdamW with a {args.warmup}-step warm-up; the steps drew what an uninterrupted run draws); "
+            f"the other stages kept."]))
     (out_dir / "training.json").write_text(json.dumps(facts) + "\n")
 
 
