@@ -351,8 +351,9 @@ def export(models, logs: dict, args, out_dir: Path, seconds: float) -> None:
         earlier = json.loads(Path(args.init_from, "training.json").read_text())
         went_on = ", ".join(f"{k} from step {len(earlier['stages'][k]['loss'])} to {logs[k]['steps']}"
                             for k in args.stages)
+        before = earlier.get("history", "").rstrip()
         facts["history"] = " ".join(filter(None, [
-            earlier.get("history", ""),
+            before + ("." if before and not before.endswith(".") else ""),
             f"Continued with --init-from {args.init_from} on {args.scenes} rooms: {went_on} (its float16 weights, "
             f"a fresh AdamW with a {args.warmup}-step warm-up; the steps drew what an uninterrupted run draws); "
             f"the other stages kept."]))
