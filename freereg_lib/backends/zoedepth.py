@@ -99,7 +99,10 @@ class ZoeDepthEstimator:
             pv = self.processor(images=[imgs[i] for i in idx], return_tensors="pt")["pixel_values"]
             pv = pv.to(self.device, torch.float32)
             B = len(idx)
-            with torch.inference_mode():
+            # no_grad, not inference_mode: transformers' BEiT caches its relative position index
+            # per window size process-wide, and an inference tensor in that cache breaks any later
+            # training of a BEiT in the same process ("Inference tensors cannot be saved for backward").
+            with torch.no_grad():
                 x = torch.cat([pv, torch.flip(pv, dims=[3])]) if self.flip else pv
                 pred = self.model(pixel_values=x).predicted_depth
                 if self.flip:
