@@ -38,7 +38,7 @@ def test_reuse_random_takes_only_a_run_of_the_same_pairs_and_config():
 def test_evaluate_with_a_reused_random_run_compares_against_it():
     pytest.importorskip("torch")
     earlier = _earlier(n_pairs=1)
-    out = E.evaluate(1, 2026, progress=False, random_result=earlier["random"])
+    out = E.evaluate(1, 2026, progress=False, random_from=earlier)
     assert out["random"] is earlier["random"]
     ir = out["trained"]["IR_per_pair"]
     assert len(ir) == 1

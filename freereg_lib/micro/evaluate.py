@@ -58,26 +58,30 @@ def summarize(rows: list[dict], cfg) -> dict:
     return out
 
 
-def reuse_random(earlier: dict, n_pairs: int, seed: int, changes: dict, source: str = "the earlier result") -> dict:
+class IncomparableRun(ValueError):
+    """An earlier result that is not of this run's pairs, pair seed and config."""
+
+
+def reuse_random(earlier: dict, n_pairs: int, seed: int, changes: dict) -> dict:
     """The ``random`` entry of an earlier :func:`evaluate` result, checked to be of the same
     pairs, pair seed and config changes (noise seed included)."""
     if "random" not in earlier:
-        raise ValueError(f"{source} holds no random-weight run")
+        raise IncomparableRun("the earlier result holds no random-weight run")
     got = (earlier["random"]["n_pairs"], earlier["seed"], earlier["config_changes"])
     want = (n_pairs, seed, json.loads(json.dumps(changes)))
     if got != want:
-        raise ValueError(f"{source} is of (pairs, seed, config changes) = {got}, this run of {want}")
+        raise IncomparableRun(f"the earlier result is of (pairs, seed, config changes) = {got}, this run of {want}")
     return earlier["random"]
 
 
 def evaluate(n_pairs: int = 30, seed: int = 2026, weights_dir=None, progress: bool = True,
-             which=("trained", "random"), noise_seed: int | None = None, random_result: dict | None = None,
+             which=("trained", "random"), noise_seed: int | None = None, random_from: dict | None = None,
              **changes) -> dict:
     """The trained-vs-random comparison on ``n_pairs`` held-out pairs drawn from ``seed``;
     ``changes`` override the config (e.g. ``guidance_w``, ``t_hat``); ``noise_seed`` sets the
     config's seed (the diffusion features' noise draws); ``which=("trained",)`` skips the
-    random baseline (a sweep of the trained model); ``random_result`` (an earlier result's
-    ``random`` entry, see :func:`reuse_random`) stands in for running it again."""
+    random baseline (a sweep of the trained model); ``random_from`` (an earlier result of the
+    same pairs and config, checked by :func:`reuse_random`) gives the random run instead of running it again."""
     from .. import pipeline, sources
     from ..backends import get_backend
     from ..config import FreeRegConfig
@@ -87,8 +91,8 @@ def evaluate(n_pairs: int = 30, seed: int = 2026, weights_dir=None, progress: bo
     cfg = FreeRegConfig().override(**changes) if changes else FreeRegConfig()
     pairs = list(sources.iter_pairs("synthetic_indoor", n_pairs, seed=seed))
     result = {"seed": seed, "config_changes": changes}
-    if random_result is not None:
-        result["random"] = random_result
+    if random_from is not None:
+        result["random"] = reuse_random(random_from, n_pairs, seed, changes)
         which = tuple(w for w in which if w != "random")
     for name, kw in (("trained", {"weights_dir": weights_dir}), ("random", {"random_weights": True})):
         if name not in which:
@@ -138,13 +142,12 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     changes = {k: v for k, v in (("guidance_w", args.guidance_w), ("t_hat", args.t_hat)) if v is not None}
     which = ("trained",) if args.trained_only else ("trained", "random")
-    random_result = None
-    if args.random_from:
-        run_changes = {**changes, "seed": args.noise_seed} if args.noise_seed is not None else changes
-        random_result = reuse_random(json.loads(Path(args.random_from).read_text()), args.pairs, args.seed,
-                                     run_changes, args.random_from)
-    result = evaluate(args.pairs, args.seed, args.weights, which=which, noise_seed=args.noise_seed,
-                      random_result=random_result, **changes)
+    random_from = json.loads(Path(args.random_from).read_text()) if args.random_from else None
+    try:
+        result = evaluate(args.pairs, args.seed, args.weights, which=which, noise_seed=args.noise_seed,
+                          random_from=random_from, **changes)
+    except IncomparableRun as exc:
+        raise SystemExit(f"--random-from {args.random_from}: {exc}") from None
     print(report(result))
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)

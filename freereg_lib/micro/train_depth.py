@@ -293,7 +293,7 @@ def main(argv=None) -> int:
         earlier = json.loads(Path(args.init_from, "training.json").read_text())
         print(f"continuing {args.init_from} from step {len(earlier['loss_per_step'])}", flush=True)
         initial = {"loss": earlier["loss_per_step"], "val_mae": earlier["val_mae"],
-                   "seconds": earlier["step_seconds"], "steps": args.steps}
+                   "seconds": earlier["step_seconds"]}
     else:
         model, initial = MD.build(args.seed), None
     log = train(model, data, args, out, initial_log=initial)
