@@ -771,6 +771,7 @@ def make_pair(
     seed: int | tuple[int, ...] = 0,
     overlap: tuple[float, float] = (0.3, 0.8),
     image_size: tuple[int, int] | None = None,
+    depth_camera_image: bool = False,
 ) -> Pair:
     """One synthetic image-to-point-cloud pair.
 
@@ -788,6 +789,10 @@ def make_pair(
 
     ``seed`` may also be a tuple of integers (a NumPy seed sequence), as the micro models'
     training pairs are drawn, so that no integer evaluation seed reproduces them.
+
+    ``depth_camera_image=True`` also shades the RGB image the depth camera would have seen,
+    ``(H_d, W_d, 3) uint8`` in ``pair.meta["depth_camera_image"]`` (a diagnostic no real
+    cloud has: :mod:`freereg_lib.micro.diagnose`); the pair is otherwise the same.
     """
     if kind not in KINDS:
         raise ValueError(f"unknown synthetic kind {kind!r}; expected one of {KINDS}")
@@ -866,6 +871,9 @@ def make_pair(
                 pair.meta["overlap"] = ratio
                 if kind == "outdoor":
                     pair.meta["T_pc_lidar"] = T_world_sensor
+                if depth_camera_image:
+                    hits_depth, _, _ = scene.camera_view(T_world_depth, pair.K_depth, size)
+                    pair.meta["depth_camera_image"] = scene.shade(hits_depth, size)
                 return pair
     raise RuntimeError(
         f"synthetic {kind} seed {seed}: no depth-side pose with overlap in [{lo}, {hi}] after "

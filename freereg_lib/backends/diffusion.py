@@ -324,26 +324,50 @@ class DiffusionFeatures:
         maps = self.depth_batch([depth])[0]
         return [maps[i] for i in range(N_LAYERS)]
 
-    def rgb_batch(self, images, layers=None) -> list[dict[int, np.ndarray]]:
-        """Decoder ``layers`` (all nine when None) of RGB images ``(H, W, 3) uint8``, one VAE
-        and one UNet call for the whole list; ``{layer: (C, h, w) float32}`` per image."""
+    def _noised_latents(self, images, noise_tag: str):
+        """VAE posterior samples of ``images`` forward-noised to the feature timestep, with the
+        seeded draws of ``noise_tag``; ``(latents, timestep)``."""
         import torch
 
         cfg = self.cfg
-        B = len(images)
-        t_feat = feature_timestep(cfg.t_hat, cfg.ddim_steps)
         x = torch.from_numpy(np.stack([rgb_to_unit(im, self.resize_hw) for im in images])).to(self.device, self.dtype)
+        g = torch.Generator("cpu").manual_seed(seed_from(cfg.seed, noise_tag) % (1 << 63))
+        post = self.vae.encode(x).latent_dist
+        one = (1,) + tuple(post.mean.shape[1:])
+        z = post.mean + post.std * self._randn(one, g)
+        z = z * self.vae.config.scaling_factor
+        noise = self._randn(one, g).expand_as(z)
+        t = self._timestep(feature_timestep(cfg.t_hat, cfg.ddim_steps))
+        return self.scheduler.add_noise(z, noise, t.cpu()).to(self.dtype), t
+
+    def rgb_batch(self, images, layers=None, noise_tag: str = "rgb-latent") -> list[dict[int, np.ndarray]]:
+        """Decoder ``layers`` (all nine when None) of RGB images ``(H, W, 3) uint8``, one VAE
+        and one UNet call for the whole list; ``{layer: (C, h, w) float32}`` per image.
+        ``noise_tag`` names the seeded noise draws (a diagnostic gives a second image its own)."""
+        import torch
+
         cond, _ = self.text_embeddings()
-        g = torch.Generator("cpu").manual_seed(seed_from(cfg.seed, "rgb-latent") % (1 << 63))
         with torch.inference_mode():
-            post = self.vae.encode(x).latent_dist
-            one = (1,) + tuple(post.mean.shape[1:])
-            z = post.mean + post.std * self._randn(one, g)
-            z = z * self.vae.config.scaling_factor
-            noise = self._randn(one, g).expand_as(z)
-            t = self._timestep(t_feat)
-            zt = self.scheduler.add_noise(z, noise, t.cpu()).to(self.dtype)
-            return run_tapped(self.unet, zt, t, layers=layers, encoder_hidden_states=cond.repeat(B, 1, 1),
+            zt, t = self._noised_latents(images, noise_tag)
+            return run_tapped(self.unet, zt, t, layers=layers, encoder_hidden_states=cond.repeat(len(images), 1, 1),
+                              return_dict=False)
+
+    def depth_pass_on_images(self, images, depths, layers=None,
+                             noise_tag: str = "depth-camera-image") -> list[dict[int, np.ndarray]]:
+        """A diagnostic: the depth branch's feature pass (ControlNet with the hints of
+        ``depths`` + UNet at the feature timestep) on the forward-noised latents of the true
+        ``images`` of the depth cameras, as if the DDIM sampling had generated exactly them."""
+        import torch
+
+        hint = torch.from_numpy(np.stack([depth_hint(d, self.resize_hw) for d in depths])).to(self.device, self.dtype)
+        cond, _ = self.text_embeddings()
+        cond = cond.repeat(len(images), 1, 1)
+        with torch.inference_mode():
+            zt, t = self._noised_latents(images, noise_tag)
+            down, mid = self.controlnet(zt, t, encoder_hidden_states=cond, controlnet_cond=hint,
+                                        conditioning_scale=1.0, return_dict=False)
+            return run_tapped(self.unet, zt, t, layers=layers, encoder_hidden_states=cond,
+                              down_block_additional_residuals=down, mid_block_additional_residual=mid,
                               return_dict=False)
 
     def depth_batch(self, depths, layers=None) -> list[dict[int, np.ndarray]]:

@@ -1,0 +1,143 @@
+"""Where FreeReg-D loses its matches: the modality gap against the generation.
+
+    python -m freereg_lib.micro.diagnose [--pairs 30] [--seed 2026] [--weights DIR]
+        [--noise-seed S] [--random-weights] [--out diagnose.json]
+
+The synthetic renderer can also shade the true image the depth camera would have seen
+(``make_pair(..., depth_camera_image=True)``), which no real cloud has. On held-out indoor
+pairs this runs FreeReg-D (layers 0, 4, 6; PCA; mutual nearest neighbours; IR at
+``cfg.tau_c``) three times, with the same image side and keypoints, changing only the decoder
+maps of the depth side:
+
+- ``freereg_d``: as the pipeline computes them (ControlNet-guided DDIM from the depth hint,
+  then the feature pass at t_hat);
+- ``generation_oracle``: the same feature pass (ControlNet with the same hint + UNet at t_hat)
+  on the forward-noised latent of the *true* depth-camera image, as if the sampling had
+  generated exactly the real image;
+- ``same_modality``: the image side's own path (UNet alone) on that true image, i.e.
+  image-to-image matching across the two viewpoints, with no modality gap at all.
+
+``same_modality`` bounds what the UNet's features can match across views; the distance from
+``generation_oracle`` down to ``freereg_d`` is what generating an image from depth costs (the
+paper's Fig. 2-I point: a depth map admits many images). Both true-image passes draw their
+own forward noise, not the image side's.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .evaluate import bootstrap_ci, paired_permutation_p
+
+VARIANTS = ("freereg_d", "generation_oracle", "same_modality")
+
+
+def depth_side_maps(pair, view, backend, layers) -> tuple[dict, dict[str, dict]]:
+    """The image side's decoder maps and the depth side's under each of :data:`VARIANTS`,
+    ``{layer: (C, h, w) float32}``; ``pair.meta["depth_camera_image"]`` must hold the true
+    depth-camera image."""
+    from .. import pipeline
+
+    image_b = pair.meta.get("depth_camera_image")
+    if image_b is None:
+        raise ValueError(f"pair {pair.name} holds no depth-camera image; make it with "
+                         "synthetic.make_pair(..., depth_camera_image=True)")
+    D = backend.diffusion
+    maps_image, maps_depth = pipeline.diffusion_maps_batch([pair], [view], backend, layers)[0]
+    return maps_image, {
+        "freereg_d": maps_depth,
+        "generation_oracle": D.depth_pass_on_images([image_b], [view.dense], layers)[0],
+        "same_modality": D.rgb_batch([image_b], layers, noise_tag="depth-camera-image")[0],
+    }
+
+
+def pair_inlier_ratios(pair, backend, cfg) -> dict[str, float]:
+    """FreeReg-D's IR (fraction) on ``pair`` under each of :data:`VARIANTS`."""
+    from .. import metrics, pipeline
+
+    view = pipeline.depth_view(pair, cfg)
+    maps_image, depth_maps = depth_side_maps(pair, view, backend, cfg.layers)
+    mono = backend.mono_depth(pair.image, depth_gt=pair.depth_gt)  # only lifts the image side
+    out = {}
+    for name, maps_depth in depth_maps.items():
+        feats = pipeline.compute_features(pair, backend, cfg, geometric=False, view=view,
+                                          maps=(maps_image, maps_depth), mono=mono)
+        m = pipeline.match(feats, 1.0)
+        out[name] = metrics.inlier_stats(*pipeline.correct_matches(pair, feats, m, cfg))[0]
+    return out
+
+
+def diagnose(n_pairs: int = 30, seed: int = 2026, weights_dir=None, random_weights: bool = False,
+             noise_seed: int | None = None, progress: bool = True) -> dict:
+    """Per-pair IRs and their means (%, 95 % bootstrap intervals) on the pairs
+    :func:`freereg_lib.micro.evaluate.evaluate` uses (``make_pairs(n_pairs, seed=seed)``), and
+    the paired permutation p between neighbouring variants."""
+    from tqdm.auto import tqdm
+
+    from .. import synthetic
+    from ..backends import get_backend
+    from ..config import FreeRegConfig
+
+    cfg = FreeRegConfig() if noise_seed is None else FreeRegConfig().override(seed=int(noise_seed))
+    backend = get_backend("micro", cfg, device="cpu", weights_dir=weights_dir, random_weights=random_weights)
+    seeds = [seed * 1_000_003 + k for k in range(n_pairs)]
+    rows = []
+    for s in tqdm(seeds, desc="diagnose", disable=not progress):
+        pair = synthetic.make_pair("indoor", seed=s, depth_camera_image=True)
+        rows.append(pair_inlier_ratios(pair, backend, cfg))
+    result = {"n_pairs": n_pairs, "seed": seed, "noise_seed": noise_seed,
+              "weights": "random" if random_weights else str(weights_dir or "committed")}
+    for name in VARIANTS:
+        v = np.array([r[name] for r in rows])
+        lo, hi = bootstrap_ci(v)
+        result[name] = {"IR": 100 * float(v.mean()), "IR_ci": [100 * lo, 100 * hi], "IR_per_pair": v.tolist()}
+    for a, b in zip(VARIANTS, VARIANTS[1:]):
+        result[f"p_{a}_vs_{b}"] = paired_permutation_p(result[a]["IR_per_pair"], result[b]["IR_per_pair"])
+    return result
+
+
+LABELS = {
+    "freereg_d": "FreeReg-D (depth side generated from the depth hint)",
+    "generation_oracle": "the same feature pass on the true depth-camera image",
+    "same_modality": "image side's path on the true depth-camera image",
+}
+
+
+def report(result: dict) -> str:
+    lines = [f"FreeReg-D IR on {result['n_pairs']} held-out synthetic indoor pairs (seed {result['seed']}, "
+             f"noise seed {result['noise_seed'] if result['noise_seed'] is not None else 'default'}, "
+             f"{result['weights']} weights), the depth side's maps from:"]
+    for name in VARIANTS:
+        r = result[name]
+        lines.append(f"  {LABELS[name]:55s} IR {r['IR']:5.1f} % [{r['IR_ci'][0]:.1f}, {r['IR_ci'][1]:.1f}]")
+    gen = result["generation_oracle"]["IR"] - result["freereg_d"]["IR"]
+    cn = result["same_modality"]["IR"] - result["generation_oracle"]["IR"]
+    lines.append(f"  the generated image instead of the true one: {-gen:+.1f} IR points "
+                 f"(p = {result['p_freereg_d_vs_generation_oracle']:.4f}); the ControlNet feature pass instead of "
+                 f"the image side's UNet pass on the true image: {-cn:+.1f} (p = "
+                 f"{result['p_generation_oracle_vs_same_modality']:.4f})")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--pairs", type=int, default=30)
+    p.add_argument("--seed", type=int, default=2026)
+    p.add_argument("--weights", default=None, help="micro weights folder (default: the committed ones)")
+    p.add_argument("--noise-seed", type=int, default=None, help="the config's seed (the diffusion noise draws)")
+    p.add_argument("--random-weights", action="store_true", help="the same architecture with random weights")
+    p.add_argument("--out", default=None, help="write the result as JSON here")
+    args = p.parse_args(argv)
+    result = diagnose(args.pairs, args.seed, args.weights, args.random_weights, args.noise_seed)
+    print(report(result))
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

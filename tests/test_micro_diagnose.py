@@ -1,0 +1,98 @@
+"""The FreeReg-D decomposition (freereg_lib.micro.diagnose): the depth-camera image the renderer
+adds, the feature pass on a true image, and its first variant reproducing the pipeline's number."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from freereg_lib import synthetic
+from freereg_lib.config import FreeRegConfig
+
+SIZE = (60, 80)
+
+
+def test_depth_camera_image_leaves_the_pair_as_it_was():
+    plain = synthetic.make_pair("indoor", seed=3, image_size=SIZE)
+    extra = synthetic.make_pair("indoor", seed=3, image_size=SIZE, depth_camera_image=True)
+    for field in ("image", "points", "T_pc_sensor", "T_cam_pc", "depth_gt", "point_ids"):
+        np.testing.assert_array_equal(getattr(plain, field), getattr(extra, field))
+    img = extra.meta["depth_camera_image"]
+    assert img.shape == SIZE + (3,) and img.dtype == np.uint8
+    # The other camera's view, not the image camera's again.
+    assert not np.array_equal(img, extra.image)
+    assert "depth_camera_image" not in plain.meta
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    pytest.importorskip("diffusers")
+    import torch
+
+    from freereg_lib.backends import get_backend
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield get_backend("tiny", FreeRegConfig(), device="cpu", resize_hw=(64, 128))
+    torch.set_num_threads(n)
+
+
+def test_the_true_image_pass_is_the_unet_pass_plus_what_the_controlnet_adds(tiny):
+    import torch
+
+    D = tiny.diffusion
+    rng = np.random.default_rng(0)
+    images = [rng.integers(0, 256, (48, 96, 3), dtype=np.uint8)]
+    depths = [rng.uniform(0.5, 4.0, (48, 96))]
+    plain = D.rgb_batch(images, (0, 4, 6), noise_tag="x")[0]
+    guided = D.depth_pass_on_images(images, depths, (0, 4, 6), noise_tag="x")[0]
+    assert any(not np.allclose(plain[k], guided[k]) for k in plain)  # the tiny ControlNet is awake
+    saved = {k: v.clone() for k, v in D.controlnet.state_dict().items()}
+    try:
+        with torch.no_grad():  # ControlNet's zero convolutions back at zero: it adds nothing
+            for m in [*D.controlnet.controlnet_down_blocks, D.controlnet.controlnet_mid_block]:
+                m.weight.zero_()
+                m.bias.zero_()
+        silent = D.depth_pass_on_images(images, depths, (0, 4, 6), noise_tag="x")[0]
+    finally:
+        D.controlnet.load_state_dict(saved)
+    for k in plain:
+        np.testing.assert_array_equal(silent[k], plain[k])
+    # Another noise tag is another forward-noise draw.
+    other = D.rgb_batch(images, (0,), noise_tag="y")[0]
+    assert not np.allclose(other[0], plain[0])
+
+
+def test_depth_side_maps_names_a_pair_without_its_depth_camera_image(tiny):
+    from freereg_lib import pipeline
+    from freereg_lib.micro import diagnose
+
+    pair = synthetic.make_pair("indoor", seed=3, image_size=SIZE)
+    with pytest.raises(ValueError, match="depth_camera_image=True"):
+        diagnose.depth_side_maps(pair, pipeline.depth_view(pair, FreeRegConfig()), tiny, (0, 4, 6))
+
+
+def test_the_first_variant_is_the_pipelines_freereg_d():
+    pytest.importorskip("diffusers")
+    from freereg_lib.micro import diagnose, evaluate
+
+    ours = diagnose.diagnose(1, 2026, progress=False)
+    theirs = evaluate.evaluate(1, 2026, progress=False, which=("trained",))
+    assert ours["freereg_d"]["IR_per_pair"] == theirs["trained"]["IR_per_pair"]
+    for name in diagnose.VARIANTS:
+        assert 0.0 <= ours[name]["IR"] <= 100.0
+
+
+def test_card_lists_the_decomposition_as_run(tmp_path):
+    import json
+
+    from freereg_lib.micro import card
+
+    assert card._diagnoses(tmp_path) == []
+    run = {"n_pairs": 100, "seed": 2026, "noise_seed": None, "weights": "committed",
+           "freereg_d": {"IR": 8.5, "IR_ci": [5.8, 11.7]}, "generation_oracle": {"IR": 27.0, "IR_ci": [22.3, 32.2]},
+           "same_modality": {"IR": 36.3, "IR_ci": [31.2, 41.8]},
+           "p_freereg_d_vs_generation_oracle": 1 / 20001, "p_generation_oracle_vs_same_modality": 0.0123}
+    (tmp_path / "diagnose_100pairs_noise0.json").write_text(json.dumps(run))
+    rows = [line for line in card._diagnoses(tmp_path) if line.startswith("| 100")]
+    assert rows == ["| 100 (2026) | default | committed | 8.5 [5.8, 11.7] | 27.0 [22.3, 32.2] | 36.3 [31.2, 41.8] "
+                    "| < 0.0001 | = 0.0123 |"]
