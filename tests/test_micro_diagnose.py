@@ -1,5 +1,6 @@
 """The FreeReg-D decomposition (freereg_lib.micro.diagnose): the depth-camera image the renderer
-adds, the feature pass on a true image, and its first variant reproducing the pipeline's number."""
+adds, the feature pass on a true image, and its first variant reproducing the pipeline's number;
+and the images the ControlNet generates from a depth map (notebook 01's Fig. 2-I)."""
 from __future__ import annotations
 
 import numpy as np
@@ -62,6 +63,17 @@ def test_the_true_image_pass_is_the_unet_pass_plus_what_the_controlnet_adds(tiny
     assert not np.allclose(other[0], plain[0])
 
 
+def test_generate_draws_repeatable_images_that_depend_on_the_seed(tiny):
+    D = tiny.diffusion
+    depth = np.random.default_rng(1).uniform(0.5, 4.0, (48, 96))
+    a, b = D.generate(depth, seeds=(0, 1))
+    assert a.shape == (64, 128, 3) and a.dtype == np.uint8  # the diffusion input size
+    assert not np.array_equal(a, b)
+    np.testing.assert_array_equal(D.generate(depth, seeds=(0,))[0], a)
+    other = np.random.default_rng(2).uniform(0.5, 4.0, (48, 96))
+    assert not np.array_equal(D.generate(other, seeds=(0,))[0], a)  # the hint steers the sampling
+
+
 def test_depth_side_maps_names_a_pair_without_its_depth_camera_image(tiny):
     from freereg_lib import pipeline
     from freereg_lib.micro import diagnose
@@ -96,3 +108,16 @@ def test_card_lists_the_decomposition_as_run(tmp_path):
     rows = [line for line in card._diagnoses(tmp_path) if line.startswith("| 100")]
     assert rows == ["| 100 (2026) | default | committed | 8.5 [5.8, 11.7] | 27.0 [22.3, 32.2] | 36.3 [31.2, 41.8] "
                     "| < 0.0001 | = 0.0123 |"]
+
+
+def test_with_depth_camera_image_renders_the_same_pair_again():
+    from freereg_lib.micro import diagnose
+
+    pair = synthetic.make_pair("indoor", seed=5, image_size=SIZE, overlap=(0.2, 0.9))
+    again = diagnose.with_depth_camera_image(pair)
+    np.testing.assert_array_equal(again.points, pair.points)
+    np.testing.assert_array_equal(again.image, pair.image)
+    assert again.meta["depth_camera_image"].shape == SIZE + (3,)
+    pair.meta = {"dataset": "3dmatch"}
+    with pytest.raises(ValueError, match="only a synthetic pair"):
+        diagnose.with_depth_camera_image(pair)

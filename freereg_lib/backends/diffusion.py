@@ -370,41 +370,52 @@ class DiffusionFeatures:
                               down_block_additional_residuals=down, mid_block_additional_residual=mid,
                               return_dict=False)
 
+    def _sample(self, hint, cond, uncond, n_steps: int, seed: int):
+        """The first ``n_steps`` guided DDIM steps from seeded Gaussian noise, every item of the
+        batch on the draws a single call makes; the latent after them."""
+        import torch
+
+        cfg = self.cfg
+        g = torch.Generator("cpu").manual_seed(seed_from(seed, "depth-ddim") % (1 << 63))
+        one = self._latent_shape()
+        sched = make_ddim_scheduler()
+        sched.set_timesteps(cfg.ddim_steps)
+        z = self._randn(one, g).repeat(len(hint), 1, 1, 1)
+        # Every step's noise drawn up front, in the order the steps use it, and the
+        # timesteps made once: one host-to-device copy each instead of one per step.
+        step_noise = torch.cat([torch.randn(one, generator=g, dtype=torch.float32) for _ in range(n_steps)])
+        step_noise = step_noise.to(self.device, self.dtype)
+        timesteps = sched.timesteps[:n_steps].to(self.device)
+        for i, t in enumerate(sched.timesteps[:n_steps].tolist()):
+            tt = timesteps[i:i + 1]
+            if cfg.batched_guidance:  # one call of batch 2B instead of two of batch B
+                e_c, e_u = self.eps(torch.cat([z, z]), tt, torch.cat([cond, uncond]),
+                                    torch.cat([hint, hint])).chunk(2)
+            else:
+                e_c = self.eps(z, tt, cond, hint)
+                e_u = self.eps(z, tt, uncond, hint)
+            e = guidance(e_c, e_u, cfg.guidance_w)
+            z = sched.step(e, t, z, eta=cfg.ddim_eta,
+                           variance_noise=step_noise[i:i + 1].expand_as(z)).prev_sample.to(self.dtype)
+        return z
+
+    def _hints_and_texts(self, depths):
+        import torch
+
+        hint = torch.from_numpy(np.stack([depth_hint(d, self.resize_hw) for d in depths])).to(self.device, self.dtype)
+        cond, uncond = self.text_embeddings()
+        return hint, cond.repeat(len(depths), 1, 1), uncond.repeat(len(depths), 1, 1)
+
     def depth_batch(self, depths, layers=None) -> list[dict[int, np.ndarray]]:
         """Decoder ``layers`` (all nine when None) of depth maps ``(H, W)`` (metres, 0 = none),
         the DDIM steps of the whole list batched; ``{layer: (C, h, w) float32}`` per map."""
         import torch
 
         cfg = self.cfg
-        B = len(depths)
-        hint = torch.from_numpy(np.stack([depth_hint(d, self.resize_hw) for d in depths])).to(self.device, self.dtype)
-        cond, uncond = self.text_embeddings()
-        cond, uncond = cond.repeat(B, 1, 1), uncond.repeat(B, 1, 1)
-        n_steps = n_guided_steps(cfg.t_hat, cfg.ddim_steps)
-        t_feat = feature_timestep(cfg.t_hat, cfg.ddim_steps)
-        g = torch.Generator("cpu").manual_seed(seed_from(cfg.seed, "depth-ddim") % (1 << 63))
-        one = self._latent_shape()
-        sched = make_ddim_scheduler()
-        sched.set_timesteps(cfg.ddim_steps)
+        hint, cond, uncond = self._hints_and_texts(depths)
         with torch.inference_mode():
-            z = self._randn(one, g).repeat(B, 1, 1, 1)
-            # Every step's noise drawn up front, in the order the steps use it, and the
-            # timesteps made once: one host-to-device copy each instead of one per step.
-            step_noise = torch.cat([torch.randn(one, generator=g, dtype=torch.float32) for _ in range(n_steps)])
-            step_noise = step_noise.to(self.device, self.dtype)
-            timesteps = sched.timesteps[:n_steps].to(self.device)
-            for i, t in enumerate(sched.timesteps[:n_steps].tolist()):
-                tt = timesteps[i:i + 1]
-                if cfg.batched_guidance:  # one call of batch 2B instead of two of batch B
-                    e_c, e_u = self.eps(torch.cat([z, z]), tt, torch.cat([cond, uncond]),
-                                        torch.cat([hint, hint])).chunk(2)
-                else:
-                    e_c = self.eps(z, tt, cond, hint)
-                    e_u = self.eps(z, tt, uncond, hint)
-                e = guidance(e_c, e_u, cfg.guidance_w)
-                z = sched.step(e, t, z, eta=cfg.ddim_eta,
-                               variance_noise=step_noise[i:i + 1].expand_as(z)).prev_sample.to(self.dtype)
-            tt = self._timestep(t_feat)
+            z = self._sample(hint, cond, uncond, n_guided_steps(cfg.t_hat, cfg.ddim_steps), cfg.seed)
+            tt = self._timestep(feature_timestep(cfg.t_hat, cfg.ddim_steps))
             down, mid = self.controlnet(
                 z, tt, encoder_hidden_states=cond, controlnet_cond=hint,
                 conditioning_scale=1.0, return_dict=False,
@@ -414,6 +425,24 @@ class DiffusionFeatures:
                 down_block_additional_residuals=down, mid_block_additional_residual=mid,
                 return_dict=False,
             )
+
+    def generate(self, depth: np.ndarray, seeds=(0,)) -> list[np.ndarray]:
+        """Images ``(h, w, 3) uint8`` at the diffusion input size that the ControlNet-guided DDIM
+        sampling (all ``cfg.ddim_steps`` steps, the feature path's guidance and eta) draws from
+        the depth map ``(H, W)``, one per seed. FreeReg never decodes them (the features are read
+        at t_hat); the seed of ``cfg.seed`` continues the very trajectory whose latent at t_hat
+        the depth side's features come from."""
+        import torch
+
+        hint, cond, uncond = self._hints_and_texts([depth])
+        out = []
+        with torch.inference_mode():
+            for seed in seeds:
+                z = self._sample(hint, cond, uncond, self.cfg.ddim_steps, int(seed))
+                x = self.vae.decode(z / self.vae.config.scaling_factor).sample[0]
+                x = ((x.float().clamp(-1, 1) + 1) * 127.5).round().byte()
+                out.append(x.permute(1, 2, 0).cpu().numpy())
+        return out
 
 
 # --------------------------------------------------------------------------------------

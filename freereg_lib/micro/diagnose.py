@@ -35,6 +35,19 @@ from .evaluate import bootstrap_ci, paired_permutation_p
 VARIANTS = ("freereg_d", "generation_oracle", "same_modality")
 
 
+def with_depth_camera_image(pair):
+    """The synthetic ``pair`` made again with its depth camera's true image
+    (``make_pair(..., depth_camera_image=True)``: the same pair otherwise)."""
+    from .. import synthetic
+
+    meta = pair.meta
+    if meta.get("dataset") != "synthetic" or "seed" not in meta:
+        raise ValueError(f"pair {pair.name}: only a synthetic pair can be rendered again with its depth camera's "
+                         "image; a real cloud has none")
+    return synthetic.make_pair(meta["kind"], seed=meta["seed"], overlap=meta["overlap_range"],
+                               image_size=pair.image_size, depth_camera_image=True)
+
+
 def depth_side_maps(pair, view, backend, layers) -> tuple[dict, dict[str, dict]]:
     """The image side's decoder maps and the depth side's under each of :data:`VARIANTS`,
     ``{layer: (C, h, w) float32}``; ``pair.meta["depth_camera_image"]`` must hold the true
@@ -103,6 +116,13 @@ LABELS = {
     "freereg_d": "FreeReg-D (depth side generated from the depth hint)",
     "generation_oracle": "the same feature pass on the true depth-camera image",
     "same_modality": "image side's path on the true depth-camera image",
+}
+
+
+SHORT_LABELS = {
+    "freereg_d": "generated (FreeReg-D)",
+    "generation_oracle": "true image, ControlNet pass",
+    "same_modality": "true image, image path",
 }
 
 
