@@ -132,7 +132,8 @@ def write_card(folder: Path = M.WEIGHTS_DIR) -> Path:
         "",
         "## Training",
         "",
-        f"- Data: {a['scenes']} rooms x {a['views_per_scene']} views rendered at 480 x 640, reduced to",
+        f"- Data (of the last run; the history below says which run saw how many): {a['scenes']} rooms x "
+        f"{a['views_per_scene']} views rendered at 480 x 640, reduced to",
         "  128 x 192 by the official resize rule; rooms drawn from `numpy.random.default_rng((0xF3EE0001, k))`,",
         "  a seed sequence no integer evaluation seed reproduces. The last "
         f"{training['validation_rooms']} rooms are held out for the validation losses.",
@@ -151,12 +152,12 @@ def write_card(folder: Path = M.WEIGHTS_DIR) -> Path:
         f" {st['controlnet']['steps']} steps, lr {a['lr_controlnet']:g}, UNet frozen.",
         f"- Text encoder: `CLIPTextModel` ({training['parameters_millions']['text_encoder']} M), random and frozen,",
         "  character-level tokenizer.",
-        f"- Time on this 2-core CPU (shared with other work while it ran): {training['step_seconds'] / 60:.0f} min"
-        f" of training steps (VAE {st['vae']['seconds'] / 60:.0f}, UNet {st['unet']['seconds'] / 60:.0f}, "
-        f"ControlNet {st['controlnet']['seconds'] / 60:.0f} min), plus rendering the views (about 23 min) and"
+        f"- Time on the 2-core CPUs of the sessions that trained them (shared with other work while it ran): "
+        f"{training['step_seconds'] / 60:.0f} min of training steps (VAE {st['vae']['seconds'] / 60:.0f}, UNet {st['unet']['seconds'] / 60:.0f}, "
+        f"ControlNet {st['controlnet']['seconds'] / 60:.0f} min), plus rendering the views (about 2 rooms a second on 2 cores) and"
         " encoding the latents. Weights: "
         f"{size_mb:.1f} MB of float16 safetensors.",
-        *([f"- History: {training['history']}."] if training.get("history") else []),
+        *([f"- History: {training['history'].rstrip('.')}."] if training.get("history") else []),
         "",
         "![loss curves](loss_curves.png)",
         "",
