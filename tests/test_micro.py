@@ -156,7 +156,7 @@ def test_micro_backend_refuses_missing_weights_and_outdoor(tmp_path):
     from freereg_lib.backends import MissingWeightsError, get_backend
     from freereg_lib.config import FreeRegConfig, config_for
 
-    with pytest.raises(MissingWeightsError, match="train_diffusion"):
+    with pytest.raises(MissingWeightsError, match="micro.retrain --export"):
         get_backend("micro", FreeRegConfig(), weights_dir=tmp_path)
     with pytest.raises(ValueError, match="indoor"):
         get_backend("micro", config_for("kitti"))

@@ -310,7 +310,7 @@ class MicroBackend(_TorchBackend):
         if not self.random_weights and M.missing_parts(self.weights_dir):
             raise MissingWeightsError(
                 f"micro weights missing in {self.weights_dir}: {', '.join(M.missing_parts(self.weights_dir))}; "
-                "retrain them with `python -m freereg_lib.micro.train_diffusion --export "
+                "retrain them with `python -m freereg_lib.micro.retrain --export "
                 f"{self.weights_dir}`")
         if depth_weights_dir is None:
             own = self.weights_dir / "depth"

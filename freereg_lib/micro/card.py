@@ -125,7 +125,8 @@ def write_card(folder: Path = M.WEIGHTS_DIR) -> Path:
         "",
         "Miniature Stable Diffusion v1.5 + depth ControlNet, trained from scratch on this repository's",
         "synthetic indoor rooms by `python -m freereg_lib.micro.train_diffusion` (architectures:",
-        "`freereg_lib/micro/models.py`). They let a CPU run FreeReg's diffusion branch with *learned*",
+        "`freereg_lib/micro/models.py`; `python -m freereg_lib.micro.retrain` reruns the whole schedule, the",
+        "history below, from scratch). They let a CPU run FreeReg's diffusion branch with *learned*",
         "weights (`get_backend(\"micro\")`). They are not Stable Diffusion: a few million parameters, one",
         "synthetic world, two texts. Numbers measured with them are a miniature of the paper's experiment,",
         "not a reproduction of its values.",
@@ -154,8 +155,9 @@ def write_card(folder: Path = M.WEIGHTS_DIR) -> Path:
         "  character-level tokenizer.",
         f"- Time on the 2-core CPUs of the sessions that trained them (shared with other work while it ran): "
         f"{training['step_seconds'] / 60:.0f} min of training steps (VAE {st['vae']['seconds'] / 60:.0f}, UNet {st['unet']['seconds'] / 60:.0f}, "
-        f"ControlNet {st['controlnet']['seconds'] / 60:.0f} min), plus rendering the views (about 2 rooms a second on 2 cores) and"
-        " encoding the latents. Weights: "
+        f"ControlNet {st['controlnet']['seconds'] / 60:.0f} min), plus rendering the views (1.4-2 rooms a second on 2 cores) and"
+        " encoding the latents. `benchmarks/bench_micro_training.py` prices the whole schedule on the machine"
+        " at hand (benchmarks/README.md). Weights: "
         f"{size_mb:.1f} MB of float16 safetensors.",
         *([f"- History: {training['history'].rstrip('.')}."] if training.get("history") else []),
         "",

@@ -1,0 +1,120 @@
+#!/usr/bin/env python
+"""Seconds per training step of each micro diffusion stage on this machine, and what the
+committed schedule (``freereg_lib.micro.retrain``) costs at those rates (issue 14).
+
+    python benchmarks/bench_micro_training.py [--rooms 20] [--steps 10] [--threads 2]
+
+Renders ``--rooms`` training rooms (timed: rooms per second), then runs
+``train_diffusion.main`` on them at the real size (128 x 192, batch 16) twice: 2 steps of each
+stage, then resumed to ``2 + --steps``; a stage's rate is the seconds its checkpoint log gained
+over those steps (each includes one validation, as every 100th step of a real run does). The
+latent encoding is timed on all the views. The estimate multiplies the steps every phase of
+``retrain.PHASES`` trains by these rates and adds the rendering and the encoding; it leaves out
+loading the views and models (seconds). Prints the machine's CPU and load average, since the
+CPU may be shared.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+WARM = 2  # steps before the timed ones: the first steps of a stage pay for allocation
+
+
+def cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown CPU"
+
+
+def schedule_steps() -> list[dict[str, int]]:
+    """Steps each phase of the committed schedule trains, per stage (a continued stage trains
+    from the step the previous phase left it at)."""
+    from freereg_lib.micro import retrain, train_diffusion as T
+
+    done = {s: 0 for s in T.STAGES}
+    phases = []
+    for argv in retrain.phase_argv(Path("x"), Path("y"), None):
+        a = T.parse_args(argv)
+        target = {"vae": a.steps_vae, "unet": a.steps_unet, "controlnet": a.steps_controlnet}
+        phases.append({s: target[s] - done[s] for s in a.stages} | {"rooms": a.scenes})
+        done.update({s: target[s] for s in a.stages})
+    return phases
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--rooms", type=int, default=20)
+    p.add_argument("--steps", type=int, default=10, help="timed steps per stage")
+    p.add_argument("--threads", type=int, default=2)
+    a = p.parse_args(argv)
+
+    import torch
+
+    from freereg_lib.micro import models as M, retrain, train_diffusion as T
+    from freereg_lib.micro.views import render_views
+
+    torch.set_num_threads(a.threads)
+    print(f"{cpu_name()}, {os.cpu_count()} cores, torch on {a.threads} threads, "
+          f"load average {os.getloadavg()[0]:.2f}", flush=True)
+    t = time.perf_counter()
+    views = render_views(a.rooms, retrain.VIEWS_PER_SCENE, progress=False)
+    rooms_per_s = a.rooms / (time.perf_counter() - t)
+
+    vae = M.build(0)["vae"]
+    rgb = torch.from_numpy(views["rgb"]).float() / 127.5 - 1.0
+    t = time.perf_counter()
+    T.encode_latents(vae, rgb)
+    views_per_s = len(rgb) / (time.perf_counter() - t)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        retrain.save_views(views, tmp / "views.npz", a.rooms)
+        common = ["--out", str(tmp / "run"), "--views", str(tmp / "views.npz"), "--scenes", str(a.rooms),
+                  "--threads", str(a.threads)]
+
+        def run(steps: int) -> dict[str, float]:
+            T.main(common + ["--steps-vae", str(steps), "--steps-unet", str(steps),
+                             "--steps-controlnet", str(steps), "--checkpoint-every", str(steps)])
+            return {s: torch.load(tmp / "run" / s / "checkpoint.pt", weights_only=False)["log"]["seconds"]
+                    for s in T.STAGES}
+
+        before = run(WARM)
+        after = run(WARM + a.steps)
+    rate = {s: (after[s] - before[s]) / a.steps for s in T.STAGES}
+
+    print(f"\nrendering: {rooms_per_s:.2f} rooms/s ({a.rooms} rooms); latent encoding: {views_per_s:.1f} views/s "
+          f"(each view and its mirror image)")
+    print("| stage | s per step (batch 16) |\n|---|---|")
+    for s in T.STAGES:
+        print(f"| {s} | {rate[s]:.3f} |")
+
+    phases = schedule_steps()
+    biggest = max(ph["rooms"] for ph in phases)
+    rows = [("rendering", f"{biggest} rooms", biggest / rooms_per_s)]
+    for i, ph in enumerate(phases, 1):
+        n_views = ph["rooms"] * retrain.VIEWS_PER_SCENE
+        rows.append((f"phase {i}: encoding", f"{n_views} views", n_views / views_per_s))
+        rows += [(f"phase {i}: {s}", f"{ph[s]} steps", ph[s] * rate[s]) for s in T.STAGES if s in ph]
+    print("\nThe committed schedule (python -m freereg_lib.micro.retrain) at these rates, estimated:")
+    print("| part | work | min |\n|---|---|---|")
+    for name, work, sec in rows:
+        print(f"| {name} | {work} | {sec / 60:.1f} |")
+    total = sum(sec for *_, sec in rows) / 60
+    print(f"| **total** | | **{total:.0f}** |")
+    print(f"\nestimated retraining from scratch: {total:.0f} min ({'within' if total <= 180 else 'over'} 3 hours)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,110 @@
+"""Retrain the committed micro diffusion weights from scratch in one command: both phases of
+their schedule, then the total time.
+
+    python -m freereg_lib.micro.retrain [--out runs/micro/retrain]
+        [--export runs/micro/retrain/weights] [--threads N]
+
+The committed weights were made in two phases (``weights/training.json``, "history"), and this
+runs them in order with :mod:`.train_diffusion`:
+
+1. from scratch on rooms 0-499: VAE 700, UNet 2,000, ControlNet 1,200 steps (round 2);
+2. ``--init-from`` phase 1's export on rooms 0-1999: UNet on to 4,000 steps, ControlNet on to
+   2,000, the VAE kept (round 4).
+
+The 2,000 rooms are rendered once; phase 1 reads their first 500 (a room's views depend on its
+index alone, so they are the views a 500-room render makes). Each phase resumes from its
+checkpoints when the command is run again, and a finished phase costs only reloading its views
+and encoding the latents. Every phase prints its time, and the last line the total.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import train_diffusion
+from .views import load_or_render
+
+VIEWS_PER_SCENE = 4
+# (rooms, train_diffusion arguments) of each phase, as the committed weights were made.
+PHASES = (
+    (500, ["--steps-vae", "700", "--steps-unet", "2000", "--steps-controlnet", "1200"]),
+    (2000, ["--stages", "unet", "controlnet", "--steps-unet", "4000", "--steps-controlnet", "2000"]),
+)
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--out", default="runs/micro/retrain", help="views, checkpoints and phase 1's weights")
+    p.add_argument("--export", default=None, help="the retrained weights (default OUT/weights)")
+    p.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
+    return p.parse_args(argv)
+
+
+def first_rooms(views: dict, n_scenes: int, views_per_scene: int = VIEWS_PER_SCENE) -> dict:
+    """The views of the first ``n_scenes`` rooms of a render (views are stored in room order)."""
+    n = n_scenes * views_per_scene
+    if n > len(views["rgb"]):
+        raise ValueError(f"{n_scenes} rooms asked for, the render holds {len(views['rgb']) // views_per_scene}")
+    return {k: v[:n] for k, v in views.items()}
+
+
+def save_views(views: dict, path: Path, n_scenes: int, views_per_scene: int = VIEWS_PER_SCENE) -> None:
+    """Write ``views`` as :func:`.views.load_or_render` caches them."""
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, n_scenes=n_scenes, views_per_scene=views_per_scene, **views)
+    os.replace(tmp, path)
+
+
+def phase_argv(out: Path, export: Path, threads: int | None) -> list[list[str]]:
+    """The ``train_diffusion`` command line of each phase; phase ``i + 1`` continues phase ``i``'s export."""
+    argvs, previous = [], None
+    for i, (rooms, extra) in enumerate(PHASES):
+        last = i == len(PHASES) - 1
+        argv = ["--out", str(out / f"phase{i + 1}"), "--views", str(out / f"views_indoor_{rooms}.npz"),
+                "--scenes", str(rooms), "--views-per-scene", str(VIEWS_PER_SCENE),
+                "--export", str(export if last else out / f"phase{i + 1}_weights"), *extra]
+        if previous is not None:
+            argv += ["--init-from", previous]
+        if threads:
+            argv += ["--threads", str(threads)]
+        previous = argv[argv.index("--export") + 1]
+        argvs.append(argv)
+    return argvs
+
+
+def prepare_views(out: Path) -> None:
+    """Render the largest phase's rooms once and cut every smaller phase's file from them."""
+    rooms = sorted({r for r, _ in PHASES})
+    largest = load_or_render(out / f"views_indoor_{rooms[-1]}.npz", rooms[-1], VIEWS_PER_SCENE)
+    for r in rooms[:-1]:
+        path = out / f"views_indoor_{r}.npz"
+        if not path.exists():
+            save_views(first_rooms(largest, r), path, r)
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    export = Path(args.export) if args.export else out / "weights"
+    t0 = time.perf_counter()
+    prepare_views(out)
+    times = [("rendering", time.perf_counter() - t0)]
+    print(f"views ready in {times[0][1] / 60:.1f} min", flush=True)
+    for i, phase in enumerate(phase_argv(out, export, args.threads), 1):
+        t = time.perf_counter()
+        train_diffusion.main(phase)
+        times.append((f"phase {i}", time.perf_counter() - t))
+        print(f"phase {i} of {len(PHASES)} done in {times[-1][1] / 60:.1f} min", flush=True)
+    total = time.perf_counter() - t0
+    print("retraining: " + ", ".join(f"{name} {s / 60:.1f} min" for name, s in times)
+          + f"; total {total / 60:.1f} min; weights in {export}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
