@@ -58,10 +58,21 @@ def test_resize_matrices_are_the_estimator_post_processing():
 
 
 def test_training_steps_lower_the_loss(data, tmp_path):
+    # Judged on one fixed batch (the 4 training views, unflipped) before and after: the steps'
+    # own losses are of random batches and flips, too noisy over 8 steps to compare. At lr 2e-3
+    # the 8 steps overshoot on some CPUs (an AMD EPYC: 12.0 -> 12.4); at 1e-3 the loss falls.
     model = MD.build(0)
-    log = T.train(model, data, _args(tmp_path, 8, checkpoint_every=100), tmp_path, progress=False)
-    loss = log["loss"]  # batch 4 of the 4 training views: nearly one fixed batch
-    assert len(loss) == 8 and np.mean(loss[-2:]) < 0.85 * np.mean(loss[:2]), loss
+    idx = np.arange(data.n_train)
+
+    def fixed_loss():
+        model.eval()  # no dropout draw in the judgement
+        with torch.no_grad():
+            return float(T.depth_loss(data.predict(model, idx), data.depth[idx]))
+
+    before = fixed_loss()
+    log = T.train(model, data, _args(tmp_path, 8, lr=1e-3, checkpoint_every=100), tmp_path, progress=False)
+    after = fixed_loss()
+    assert len(log["loss"]) == 8 and after < 0.85 * before, (before, after, log["loss"])
 
 
 def test_resume_is_bit_identical(data, tmp_path, monkeypatch):
