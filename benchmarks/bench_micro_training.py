@@ -17,24 +17,16 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
+import sys
 import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_pipeline import cpu_model  # noqa: E402  (also puts the repository on sys.path)
 
 WARM = 2  # steps before the timed ones: the first steps of a stage pay for allocation
-
-
-def cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
 
 
 def schedule_steps() -> list[dict[str, int]]:
@@ -46,7 +38,7 @@ def schedule_steps() -> list[dict[str, int]]:
     phases = []
     for argv in retrain.phase_argv(Path("x"), Path("y"), None):
         a = T.parse_args(argv)
-        target = {"vae": a.steps_vae, "unet": a.steps_unet, "controlnet": a.steps_controlnet}
+        target = {s: getattr(a, f"steps_{s}") for s in T.STAGES}
         phases.append({s: target[s] - done[s] for s in a.stages} | {"rooms": a.scenes})
         done.update({s: target[s] for s in a.stages})
     return phases
@@ -62,10 +54,10 @@ def main(argv=None) -> int:
     import torch
 
     from freereg_lib.micro import models as M, retrain, train_diffusion as T
-    from freereg_lib.micro.views import render_views
+    from freereg_lib.micro.views import render_views, save_views
 
     torch.set_num_threads(a.threads)
-    print(f"{cpu_name()}, {os.cpu_count()} cores, torch on {a.threads} threads, "
+    print(f"{cpu_model()}, {os.cpu_count()} cores, torch on {a.threads} threads, "
           f"load average {os.getloadavg()[0]:.2f}", flush=True)
     t = time.perf_counter()
     views = render_views(a.rooms, retrain.VIEWS_PER_SCENE, progress=False)
@@ -79,7 +71,7 @@ def main(argv=None) -> int:
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        retrain.save_views(views, tmp / "views.npz", a.rooms)
+        save_views(views, tmp / "views.npz", a.rooms, retrain.VIEWS_PER_SCENE)
         common = ["--out", str(tmp / "run"), "--views", str(tmp / "views.npz"), "--scenes", str(a.rooms),
                   "--threads", str(a.threads)]
 

@@ -19,14 +19,11 @@ and encoding the latents. Every phase prints its time, and the last line the tot
 from __future__ import annotations
 
 import argparse
-import os
 import time
 from pathlib import Path
 
-import numpy as np
-
 from . import train_diffusion
-from .views import load_or_render
+from .views import load_or_render, save_views
 
 VIEWS_PER_SCENE = 4
 # (rooms, train_diffusion arguments) of each phase, as the committed weights were made.
@@ -52,26 +49,18 @@ def first_rooms(views: dict, n_scenes: int, views_per_scene: int = VIEWS_PER_SCE
     return {k: v[:n] for k, v in views.items()}
 
 
-def save_views(views: dict, path: Path, n_scenes: int, views_per_scene: int = VIEWS_PER_SCENE) -> None:
-    """Write ``views`` as :func:`.views.load_or_render` caches them."""
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, n_scenes=n_scenes, views_per_scene=views_per_scene, **views)
-    os.replace(tmp, path)
-
-
 def phase_argv(out: Path, export: Path, threads: int | None) -> list[list[str]]:
     """The ``train_diffusion`` command line of each phase; phase ``i + 1`` continues phase ``i``'s export."""
     argvs, previous = [], None
     for i, (rooms, extra) in enumerate(PHASES):
-        last = i == len(PHASES) - 1
+        exported = export if i == len(PHASES) - 1 else out / f"phase{i + 1}_weights"
         argv = ["--out", str(out / f"phase{i + 1}"), "--views", str(out / f"views_indoor_{rooms}.npz"),
-                "--scenes", str(rooms), "--views-per-scene", str(VIEWS_PER_SCENE),
-                "--export", str(export if last else out / f"phase{i + 1}_weights"), *extra]
+                "--scenes", str(rooms), "--views-per-scene", str(VIEWS_PER_SCENE), "--export", str(exported), *extra]
         if previous is not None:
-            argv += ["--init-from", previous]
+            argv += ["--init-from", str(previous)]
         if threads:
             argv += ["--threads", str(threads)]
-        previous = argv[argv.index("--export") + 1]
+        previous = exported
         argvs.append(argv)
     return argvs
 
@@ -83,7 +72,7 @@ def prepare_views(out: Path) -> None:
     for r in rooms[:-1]:
         path = out / f"views_indoor_{r}.npz"
         if not path.exists():
-            save_views(first_rooms(largest, r), path, r)
+            save_views(first_rooms(largest, r), path, r, VIEWS_PER_SCENE)
 
 
 def main(argv=None) -> int:

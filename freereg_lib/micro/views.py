@@ -111,8 +111,15 @@ def load_or_render(path: str | Path, n_scenes: int, views_per_scene: int = 4,
             if int(z["n_scenes"]) == n_scenes and int(z["views_per_scene"]) == views_per_scene:
                 return {k: z[k] for k in ("rgb", "hint", "depth")}
     views = render_views(n_scenes, views_per_scene, progress=progress)
+    save_views(views, path, n_scenes, views_per_scene)
+    return views
+
+
+def save_views(views: dict[str, np.ndarray], path: str | Path, n_scenes: int, views_per_scene: int) -> None:
+    """Cache ``views`` in ``path`` (``.npz``) as :func:`load_or_render` reads them; written whole
+    or not at all."""
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp.npz")
     np.savez(tmp, n_scenes=n_scenes, views_per_scene=views_per_scene, **views)
     os.replace(tmp, path)
-    return views
