@@ -96,6 +96,26 @@ def test_a_resumed_stage_ends_where_an_uninterrupted_one_does(tmp_path):
         assert torch.equal(v, b["model"][k]), k
 
 
+def test_lr_factor_warms_up_then_holds_or_decays_to_zero():
+    assert [T.lr_factor(s, 6, 2) for s in range(6)] == [0.5, 1.0, 1.0, 1.0, 1.0, 1.0]
+    cos = [T.lr_factor(s, 5, 2, "cosine") for s in range(5)]
+    assert cos == pytest.approx([0.5 * 0.5 * (1 + np.cos(0)), 0.5 * (1 + np.cos(np.pi / 4)), 0.5,
+                                 0.5 * (1 + np.cos(3 * np.pi / 4)), 0.0])
+    assert T.lr_factor(9, 5, 2, "cosine") == 0.0  # past the run's end it stays at 0
+    with pytest.raises(ValueError, match="expected 'constant' or 'cosine'"):
+        T.lr_factor(0, 5, 2, "linear")
+
+
+@pytest.mark.parametrize("schedule, last_lr", [("constant", 1e-3), ("cosine", 0.0)])
+def test_a_stage_ends_at_its_schedules_learning_rate(tmp_path, schedule, last_lr):
+    np.savez(tmp_path / "views.npz", n_scenes=2, views_per_scene=4, **_views())
+    T.main(["--views", str(tmp_path / "views.npz"), "--scenes", "2", "--views-per-scene", "4",
+            "--stages", "vae", "--steps-vae", "3", "--batch", "2", "--warmup", "1", "--lr-vae", "1e-3",
+            "--lr-schedule", schedule, "--out", str(tmp_path / "o"), "--threads", "1"])
+    state = torch.load(tmp_path / "o/vae/checkpoint.pt", weights_only=False)
+    assert state["optimizer"]["param_groups"][0]["lr"] == pytest.approx(last_lr, abs=1e-12)
+
+
 def test_export_needs_every_stage(tmp_path):
     np.savez(tmp_path / "views.npz", n_scenes=2, views_per_scene=4, **_views())
     with pytest.raises(SystemExit, match="all three stages"):

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import time
 import zlib
@@ -63,6 +64,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--lr-unet", type=float, default=5e-4)
     p.add_argument("--lr-controlnet", type=float, default=5e-4)
     p.add_argument("--warmup", type=int, default=100, help="linear learning-rate warm-up steps")
+    p.add_argument("--lr-schedule", default="constant", choices=("constant", "cosine"),
+                   help="after the warm-up: constant (the committed rounds 1-4), or a cosine from --lr-* "
+                        "to 0 over this run's steps (its last step trains at lr 0)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--checkpoint-every", type=int, default=100)
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
@@ -119,6 +123,21 @@ def step_rng(seed: int, stage: str, step: int) -> tuple[np.random.Generator, "ob
     return np.random.default_rng(ss), g
 
 
+def lr_factor(s: int, span: int, warmup: int, schedule: str = "constant") -> float:
+    """The learning rate's multiplier at step ``s`` of a run of ``span`` steps (from 0).
+
+    A linear warm-up over ``warmup`` steps, then 1 (``"constant"``), or a half cosine reaching 0 at
+    the run's last step (``"cosine"``), so the weights a continuation exports are not those of a
+    high, noisy learning rate.
+    """
+    warm = min(1.0, (s + 1) / max(warmup, 1))
+    if schedule == "constant":
+        return warm
+    if schedule != "cosine":
+        raise ValueError(f"lr schedule {schedule!r}: expected 'constant' or 'cosine'")
+    return warm * 0.5 * (1.0 + math.cos(math.pi * min(s, span - 1) / max(span - 1, 1)))
+
+
 def run_stage(stage: str, trainable, loss_fn, val_fn, steps: int, lr: float, args, out: Path,
               initial_log: dict | None = None) -> dict:
     """Seeded, resumable training of ``trainable`` (an ``nn.Module``) for ``steps`` steps.
@@ -136,12 +155,14 @@ def run_stage(stage: str, trainable, loss_fn, val_fn, steps: int, lr: float, arg
     ckpt = folder / "checkpoint.pt"
     opt = torch.optim.AdamW([p for p in trainable.parameters() if p.requires_grad], lr=lr,
                             weight_decay=1e-2)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: min(1.0, (s + 1) / max(args.warmup, 1)))
     log = {"loss": [], "val": [], "seconds": 0.0, "steps": steps}
     start = 0
     if initial_log is not None:
         log = {**initial_log, "loss": list(initial_log["loss"]), "val": list(initial_log["val"]), "steps": steps}
         start = len(log["loss"])
+    span = max(steps - start, 1)
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda s: lr_factor(s, span, args.warmup, getattr(args, "lr_schedule", "constant")))
     if ckpt.exists():
         state = torch.load(ckpt, map_location="cpu", weights_only=False)
         trainable.load_state_dict(state["model"])
@@ -355,7 +376,9 @@ def export(models, logs: dict, args, out_dir: Path, seconds: float) -> None:
         facts["history"] = " ".join(filter(None, [
             before + ("." if before and not before.endswith(".") else ""),
             f"Continued with --init-from {args.init_from} on {args.scenes} rooms: {went_on} (its float16 weights, "
-            f"a fresh AdamW with a {args.warmup}-step warm-up; the steps drew what an uninterrupted run draws); "
+            f"a fresh AdamW with a {args.warmup}-step warm-up"
+            + ("" if getattr(args, "lr_schedule", "constant") == "constant" else ", then a cosine to 0")
+            + f"; the steps drew what an uninterrupted run draws); "
             f"the other stages kept."]))
     (out_dir / "training.json").write_text(json.dumps(facts) + "\n")
 
