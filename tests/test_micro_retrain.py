@@ -18,16 +18,19 @@ WEIGHTS = Path(__file__).resolve().parents[1] / "freereg_lib" / "micro" / "weigh
 
 
 def test_the_schedule_is_the_one_the_committed_weights_record(tmp_path):
-    first, last = (T.parse_args(a) for a in R.phase_argv(tmp_path, tmp_path / "w", threads=None))
+    first, second, last = (T.parse_args(a) for a in R.phase_argv(tmp_path, tmp_path / "w", threads=None))
     facts = json.loads((WEIGHTS / "training.json").read_text())
     recorded = {k: v for k, v in facts["arguments"].items() if k != "init_from"}
     assert {k: v for k, v in vars(last).items() if k in recorded} == recorded
-    assert last.init_from == first.export and last.export == str(tmp_path / "w")
+    assert second.init_from == first.export and last.init_from == second.export
+    assert last.export == str(tmp_path / "w")
     assert first.init_from is None and first.stages == list(T.STAGES)
     # Phase 1 made the VAE (kept since) and the UNet / ControlNet that phase 2 continued.
     assert first.steps_vae == facts["stages"]["vae"]["steps"] and first.scenes == 500
     assert "unet from step 2000 to 4000" in facts["history"] and first.steps_unet == 2000
     assert "controlnet from step 1200 to 2000" in facts["history"] and first.steps_controlnet == 1200
+    assert (second.steps_unet, second.steps_controlnet, second.lr_schedule) == (4000, 2000, "constant")
+    assert "unet from step 4000 to 6000, controlnet from step 2000 to 2600" in facts["history"]
 
 
 def test_first_rooms_of_a_render_are_the_smaller_render():

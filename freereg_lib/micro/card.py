@@ -17,6 +17,14 @@ import numpy as np
 
 from . import models as M
 
+# Measured, not computed: the wall times `retrain` printed (README, "Retrain and re-measure").
+RETRAIN_MEASURED = (
+    "Retraining from scratch (`python -m freereg_lib.micro.retrain`), measured on a 2-core AMD EPYC with"
+    " nothing else running: rendering and phases 1-2 (rounds 2 and 4) in one run of 125.4 min"
+    " (2026-12-03: rendering 17.0, phase 1 59.6, phase 2 48.8 min), phase 3 (round 5) as its own"
+    " training run of 46.1 min the same day (a 12-second test ran beside it); 171.5 min in all."
+)
+
 
 def plot_losses(training: dict, path: Path) -> None:
     import matplotlib
@@ -157,7 +165,7 @@ def write_card(folder: Path = M.WEIGHTS_DIR) -> Path:
         f"{training['step_seconds'] / 60:.0f} min of training steps (VAE {st['vae']['seconds'] / 60:.0f}, UNet {st['unet']['seconds'] / 60:.0f}, "
         f"ControlNet {st['controlnet']['seconds'] / 60:.0f} min), plus rendering the views (1.4-2 rooms a second on 2 cores) and"
         " encoding the latents. `benchmarks/bench_micro_training.py` prices the whole schedule on the machine"
-        " at hand (benchmarks/README.md). Weights: "
+        " at hand (benchmarks/README.md). " + RETRAIN_MEASURED + " Weights: "
         f"{size_mb:.1f} MB of float16 safetensors.",
         *([f"- History: {training['history'].rstrip('.')}."] if training.get("history") else []),
         "",
@@ -183,7 +191,7 @@ def write_card(folder: Path = M.WEIGHTS_DIR) -> Path:
             _row("trained", ev["trained"]),
             _row("random", ev["random"]),
             "",
-            f"Trained / random mean IR: {ev['IR_ratio']:.2f}x (paired permutation p = {ev['p_value']:.4f}: "
+            f"Trained / random mean IR: {ev['IR_ratio']:.2f}x (paired permutation p {_p_text(ev['p_value'])}: "
             f"{'a significant' if ev['p_value'] < 0.05 else 'not a significant'} difference at the 5 % level"
             f" over {ev['trained']['n_pairs']} pairs).",
             "The paper's FreeReg-D on 3DMatch (Table 1): IR 39.6 %, FMR 91.9 %.",

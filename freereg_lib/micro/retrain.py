@@ -1,15 +1,17 @@
-"""Retrain the committed micro diffusion weights from scratch in one command: both phases of
-their schedule, then the total time.
+"""Retrain the committed micro diffusion weights from scratch in one command: the three phases
+of their schedule, then the total time.
 
     python -m freereg_lib.micro.retrain [--out runs/micro/retrain]
         [--export runs/micro/retrain/weights] [--threads N]
 
-The committed weights were made in two phases (``weights/training.json``, "history"), and this
+The committed weights were made in three phases (``weights/training.json``, "history"), and this
 runs them in order with :mod:`.train_diffusion`:
 
 1. from scratch on rooms 0-499: VAE 700, UNet 2,000, ControlNet 1,200 steps (round 2);
 2. ``--init-from`` phase 1's export on rooms 0-1999: UNet on to 4,000 steps, ControlNet on to
-   2,000, the VAE kept (round 4).
+   2,000, the VAE kept (round 4);
+3. ``--init-from`` phase 2's export on the same rooms: UNet on to 6,000 steps, ControlNet on to
+   2,600, each with a cosine decay of the learning rate to 0 (round 5).
 
 The 2,000 rooms are rendered once; phase 1 reads their first 500 (a room's views depend on its
 index alone, so they are the views a 500-room render makes). Each phase resumes from its
@@ -30,6 +32,8 @@ VIEWS_PER_SCENE = 4
 PHASES = (
     (500, ["--steps-vae", "700", "--steps-unet", "2000", "--steps-controlnet", "1200"]),
     (2000, ["--stages", "unet", "controlnet", "--steps-unet", "4000", "--steps-controlnet", "2000"]),
+    (2000, ["--stages", "unet", "controlnet", "--steps-unet", "6000", "--steps-controlnet", "2600",
+            "--lr-schedule", "cosine"]),
 )
 
 
