@@ -161,8 +161,9 @@ def run_stage(stage: str, trainable, loss_fn, val_fn, steps: int, lr: float, arg
         log = {**initial_log, "loss": list(initial_log["loss"]), "val": list(initial_log["val"]), "steps": steps}
         start = len(log["loss"])
     span = max(steps - start, 1)
-    sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda s: lr_factor(s, span, args.warmup, getattr(args, "lr_schedule", "constant")))
+    # train_fcgf runs its stage here with its own arguments, which have no --lr-schedule.
+    schedule = getattr(args, "lr_schedule", "constant")
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, span, args.warmup, schedule))
     if ckpt.exists():
         state = torch.load(ckpt, map_location="cpu", weights_only=False)
         trainable.load_state_dict(state["model"])
@@ -377,7 +378,7 @@ def export(models, logs: dict, args, out_dir: Path, seconds: float) -> None:
             before + ("." if before and not before.endswith(".") else ""),
             f"Continued with --init-from {args.init_from} on {args.scenes} rooms: {went_on} (its float16 weights, "
             f"a fresh AdamW with a {args.warmup}-step warm-up"
-            + ("" if getattr(args, "lr_schedule", "constant") == "constant" else ", then a cosine to 0")
+            + ("" if args.lr_schedule == "constant" else ", then a cosine to 0")
             + f"; the steps drew what an uninterrupted run draws); "
             f"the other stages kept."]))
     (out_dir / "training.json").write_text(json.dumps(facts) + "\n")
