@@ -32,6 +32,12 @@ class Pair:
             ``cfg.densify``), the depth-side cloud for geometric features is its
             back-projection, and evaluation lifts depth-side keypoints with it (the
             official ``dpt_gtd``). None: the cloud is projected on the depth camera instead.
+        depth_frame_gt: ``(H_d, W_d) float64`` true depth of the depth camera's frame, for
+            evaluation only (0 = none), when the cloud is a sample of a denser truth (synthetic
+            rooms: the cloud is a subsample of it). Evaluation then lifts depth-side keypoints
+            with it, as the official code lifts them with the depth frame's own ``dpt_gtd``;
+            None: with ``sensor_depth``, else with the projected cloud, whose holes make the
+            matches on them unevaluable.
         image_ids: ``(H, W) int32`` class ids of the image pixels (synthetic only).
         point_ids: ``(N,) int32`` class ids of the points (synthetic only).
         name: a short identifier, e.g. ``"icl/00010-00040"``.
@@ -47,6 +53,7 @@ class Pair:
     T_cam_pc: np.ndarray
     depth_gt: np.ndarray | None = None
     sensor_depth: np.ndarray | None = None
+    depth_frame_gt: np.ndarray | None = None
     image_ids: np.ndarray | None = None
     point_ids: np.ndarray | None = None
     name: str = "pair"
@@ -66,7 +73,7 @@ class Pair:
         or at the centre of another resolution), a ``depth_size`` given as ``(W, H)``, a pose
         that is not rigid (:func:`~freereg_lib.cameras.check_pose`), a camera thousands of
         cloud sizes away from the cloud (a translation in millimetres), a ``depth_gt`` or
-        ``sensor_depth`` of another size, without one valid pixel, or in other units than the
+        ``sensor_depth`` / ``depth_frame_gt`` of another size, without one valid pixel, or in other units than the
         cloud (its median more than 50 x or less than 1/50 of the median depth of the cloud
         seen from the depth camera: millimetres vs metres), id maps of the wrong size.
 
@@ -141,7 +148,7 @@ class Pair:
                 fail(f"{name} puts its camera {away:.4g} m from the point cloud, which is {across:.3g} m across: "
                      "its translation looks like millimetres (divide t by 1000), or it belongs to another cloud")
         ref = None  # median depth of the cloud seen from the depth camera, for the units of depth maps
-        for name, shape in (("depth_gt", (H, W)), ("sensor_depth", size)):
+        for name, shape in (("depth_gt", (H, W)), ("sensor_depth", size), ("depth_frame_gt", size)):
             d = getattr(self, name)
             if d is None:
                 continue
@@ -154,6 +161,9 @@ class Pair:
                 if name == "depth_gt":
                     fail("depth_gt has no valid pixel (all zero: no true depth anywhere); pass depth_gt=None "
                          "when the image has no ground-truth depth (the pair can then be registered, not scored)")
+                if name == "depth_frame_gt":
+                    fail("depth_frame_gt has no valid pixel (all zero); pass depth_frame_gt=None to score the "
+                         "depth side with the projected cloud")
                 fail("sensor_depth has no valid pixel (all zero); pass sensor_depth=None to project the cloud instead")
             if ref is None:
                 ref = self._cloud_median_depth(pts, size)

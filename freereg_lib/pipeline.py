@@ -354,7 +354,8 @@ def correct_matches(pair: Pair, feats: PairFeatures, m: Matches, cfg: FreeRegCon
     if pair.depth_gt is None:
         raise ValueError(f"pair {pair.name} has no ground-truth image depth; matches cannot be scored")
     uv_dep = feats.uv_depth[m.idx_depth]
-    z_true = cameras.nearest_sample(feats.view.raw, uv_dep)
+    truth = feats.view.raw if pair.depth_frame_gt is None else pair.depth_frame_gt
+    z_true = cameras.nearest_sample(truth, uv_dep)
     ok = (z_true > cfg.depth_min) & (z_true < cfg.depth_max)
     pts_true = np.full((len(uv_dep), 3), np.nan)
     if ok.any():
@@ -370,8 +371,9 @@ def evaluate(pair: Pair, feats: PairFeatures, m: Matches, result: pose.PoseResul
 
     As in the official evaluation both sides of a match are lifted with the ground-truth
     depth of their own frame: the image side with ``pair.depth_gt``, the depth side with
-    the depth frame's true depth (``view.raw``: the sensor depth, raw on 3DMatch, or the
-    projected cloud), not with the densified map the features were computed on. A match
+    the depth frame's true depth (``pair.depth_frame_gt`` where the pair has one, else
+    ``view.raw``: the sensor depth, raw on 3DMatch, or the projected cloud), not with the
+    densified map the features were computed on. A match
     whose true depth on either side is missing or outside the depth range is not evaluable.
     """
     ir, inn = metrics.inlier_stats(*correct_matches(pair, feats, m, cfg))

@@ -860,6 +860,8 @@ def make_pair(
                 T_pc_sensor=T_world_depth,
                 T_cam_pc=invert(T_world_cam),
                 depth_gt=depth_gt,
+                # The cloud samples this depth frame; the official evaluation lifts with the whole frame.
+                depth_frame_gt=sensor_depth if kind == "indoor" else None,
                 image_ids=image_ids,
                 point_ids=point_ids[keep].astype(np.int32),
                 name=f"synthetic-{kind}/{_seed_label(seed)}",

@@ -269,3 +269,25 @@ def test_pnp_workers_share_the_iterations_and_return_original_indices():
     assert np.linalg.norm(proj - uv[many.inliers], axis=1).max() < 10.0
     with pytest.raises(ValueError, match="workers"):
         pose.pnp_ransac(uv, pts, pair.K_image, workers=0)
+
+
+def test_depth_side_is_scored_with_the_depth_frame_truth():
+    """Depth-side keypoints are lifted with ``pair.depth_frame_gt`` when the pair has one (the
+    official ``dpt_gtd``): every match on the frame is evaluable, and the matches the sparse
+    projected cloud could score keep their verdicts; without it only those are evaluable."""
+    import dataclasses
+
+    from freereg_lib import pipeline, synthetic
+    from freereg_lib.backends import get_backend
+    from freereg_lib.config import FreeRegConfig
+
+    cfg = FreeRegConfig().override(keypoint_grid=(12, 16))
+    pair = synthetic.make_pair("indoor", seed=4)
+    feats = pipeline.compute_features(pair, get_backend("stub", cfg), cfg, diffusion=False, geometric=False)
+    n = min(len(feats.uv_image), len(feats.uv_depth))
+    rng = np.random.default_rng(0)
+    m = pipeline.Matches(rng.permutation(len(feats.uv_image))[:n], np.arange(n))
+    ok_frame, ev_frame = pipeline.correct_matches(pair, feats, m, cfg)
+    ok_cloud, ev_cloud = pipeline.correct_matches(dataclasses.replace(pair, depth_frame_gt=None), feats, m, cfg)
+    assert ev_frame.all() and 0 < ev_cloud.sum() < 0.5 * n
+    np.testing.assert_array_equal(ok_frame[ev_cloud], ok_cloud[ev_cloud])

@@ -225,3 +225,27 @@ def test_class_names():
     assert CLASS_NAMES[0] == "none"
     assert len(set(CLASS_NAMES.values())) == len(CLASS_NAMES)
     assert {"floor", "wall", "road", "building", "car", "pole"} <= set(CLASS_NAMES.values())
+
+
+def test_indoor_cloud_samples_the_depth_frame_truth(pairs):
+    """The indoor cloud is a subsample of the depth camera's true frame: every point projects
+    onto a pixel of ``depth_frame_gt`` at exactly its depth (the frame the evaluation lifts
+    depth-side keypoints with); the LiDAR street has no such frame."""
+    p = pairs["indoor"]
+    gt = p.depth_frame_gt
+    assert gt.shape == p.depth_size and (gt > 0).mean() > 0.95
+    uv, z = project(transform(invert(p.T_pc_sensor), p.points), p.K_depth)
+    u, v = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
+    assert np.abs(uv - np.stack([u, v], 1)).max() < 1e-6
+    np.testing.assert_allclose(gt[v, u], z, rtol=1e-9, atol=1e-9)
+    assert len(p.points) < (gt > 0).sum()  # a sample: the frame has depth where the cloud has no point
+    assert pairs["outdoor"].depth_frame_gt is None
+
+
+def test_depth_frame_gt_of_the_wrong_size_is_named(pairs):
+    p = pairs["indoor"]
+    bad = dataclasses.replace(p, depth_frame_gt=p.depth_frame_gt[:-1])
+    with pytest.raises(ValueError, match=r"depth_frame_gt must be \(H_d, W_d\)"):
+        bad.validate()
+    with pytest.raises(ValueError, match="depth_frame_gt has no valid pixel"):
+        dataclasses.replace(p, depth_frame_gt=np.zeros_like(p.depth_frame_gt)).validate()
