@@ -44,3 +44,21 @@ def test_evaluate_with_a_reused_random_run_compares_against_it():
     assert len(ir) == 1
     assert out["IR_ratio"] == pytest.approx(out["trained"]["IR"] / 2.0)
     assert out["p_value"] == 1.0  # one pair: both signs of its difference reach |mean|
+
+
+def test_the_command_line_records_only_the_config_fields_it_was_given(monkeypatch, capsys):
+    seen = []
+
+    def fake_evaluate(n_pairs, seed, weights_dir, **kw):
+        seen.append(kw)
+        return {"seed": seed, "config_changes": {k: v for k, v in kw.items() if k in E.SWEPT_FIELDS},
+                "trained": {"n_pairs": n_pairs, "IR": 1.0, "IR_ci": (0.0, 2.0), "FMR": 0.0, "FMR_ci": (0.0, 0.0),
+                            "RR": 0.0, "RR_ci": (0.0, 0.0)}}
+
+    monkeypatch.setattr(E, "evaluate", fake_evaluate)
+    E.main(["--pairs", "2", "--trained-only", "--ddim-eta", "0", "--ddim-steps", "50"])
+    E.main(["--pairs", "2", "--trained-only"])
+    assert {k: v for k, v in seen[0].items() if k in E.SWEPT_FIELDS} == {"ddim_eta": 0.0, "ddim_steps": 50}
+    assert not any(k in E.SWEPT_FIELDS for k in seen[1])  # a default run records no change
+    out = capsys.readouterr().out
+    assert "{'ddim_steps': 50, 'ddim_eta': 0.0}" in out and "default config" in out

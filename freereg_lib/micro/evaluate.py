@@ -125,6 +125,14 @@ def report(result: dict) -> str:
     return "\n".join(lines)
 
 
+SWEPT_FIELDS = ("guidance_w", "t_hat", "ddim_steps", "ddim_eta")
+
+
+def config_changes(args: argparse.Namespace) -> dict:
+    """The config fields the command line set (only those given, so a default run records ``{}``)."""
+    return {k: getattr(args, k) for k in SWEPT_FIELDS if getattr(args, k) is not None}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--pairs", type=int, default=30)
@@ -132,6 +140,8 @@ def main(argv=None) -> int:
     p.add_argument("--weights", default=None, help="micro weights folder (default: the committed ones)")
     p.add_argument("--guidance-w", type=float, default=None)
     p.add_argument("--t-hat", type=int, default=None)
+    p.add_argument("--ddim-steps", type=int, default=None)
+    p.add_argument("--ddim-eta", type=float, default=None)
     p.add_argument("--noise-seed", type=int, default=None,
                    help="the config's seed (the diffusion features' noise draws); default the config's")
     p.add_argument("--trained-only", action="store_true", help="skip the random-weight baseline (sweeps)")
@@ -140,7 +150,7 @@ def main(argv=None) -> int:
                         "run is reused instead of run again")
     p.add_argument("--out", default=None, help="write the result as JSON here")
     args = p.parse_args(argv)
-    changes = {k: v for k, v in (("guidance_w", args.guidance_w), ("t_hat", args.t_hat)) if v is not None}
+    changes = config_changes(args)
     which = ("trained",) if args.trained_only else ("trained", "random")
     random_from = json.loads(Path(args.random_from).read_text()) if args.random_from else None
     try:
