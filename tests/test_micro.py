@@ -200,3 +200,24 @@ def test_diffusion_card_lists_further_evaluations_with_their_noise_seeds(tmp_pat
         "| 100 (2026) | 0 | 8.5 [5.8, 11.7] | 31.0 | 4.0 | 2.1 [5.8, 11.7] | 4.05x | < 0.0001 |",
         "| 100 (2026) | 1 | 8.5 [5.8, 11.7] | 31.0 | 4.0 | 2.1 [5.8, 11.7] | 4.05x | = 0.0390 |",
     ]
+
+
+def test_diffusion_card_puts_each_sweep_beside_the_default_run_of_its_pairs(tmp_path):
+    from freereg_lib.micro import card
+
+    def trained(n, ir_per_pair):
+        return {"n_pairs": n, "IR_per_pair": ir_per_pair, "IR": 100 * sum(ir_per_pair) / n, "IR_ci": [1.0, 2.0],
+                "FMR": 50.0, "RR": 0.0}
+
+    assert card._sweeps(tmp_path) == []
+    base = {"seed": 2026, "config_changes": {}, "trained": trained(6, [0.1] * 6), "random": trained(6, [0.0] * 6)}
+    (tmp_path / "eval.json").write_text(json.dumps(base))
+    (tmp_path / "guidance").mkdir()
+    (tmp_path / "guidance" / "w1.json").write_text(json.dumps(
+        {"seed": 2026, "config_changes": {"guidance_w": 1.0}, "trained": trained(6, [0.2] * 6)}))
+    (tmp_path / "guidance" / "w1_noise3.json").write_text(json.dumps(
+        {"seed": 2026, "config_changes": {"guidance_w": 1.0, "seed": 3}, "trained": trained(6, [0.2] * 6)}))
+    rows = [line for line in card._sweeps(tmp_path) if line.startswith("| guidance_w")]
+    # Six equal positive differences: 2 of the 64 sign patterns reach them (p about 2 / 64).
+    assert rows[0].startswith("| guidance_w = 1 | 6 (2026) | 0 | 20.0 [1.0, 2.0] | 50.0 | 0.0 | 10.0 | = 0.03")
+    assert rows[1].endswith("| - | no default-config run of these pairs |")  # noise seed 3 has no baseline

@@ -122,6 +122,59 @@ def _diagnoses(folder: Path) -> list[str]:
     return lines + [""]
 
 
+SWEEP_FOLDERS = ("t_hat", "guidance", "sampler")
+
+
+def _noise_seed(run: dict) -> int:
+    from ..config import FreeRegConfig
+
+    return run["config_changes"].get("seed", FreeRegConfig().seed)
+
+
+def _sweeps(folder: Path) -> list[str]:
+    """Rows of the trained-only sweeps (``t_hat/``, ``guidance/``, ``sampler/``: ``evaluate
+    --trained-only`` with one config field changed), each beside the default-config run of the
+    same pairs, pair seed and noise seed (``eval.json``, ``eval_*.json``) with a paired p."""
+    from .evaluate import paired_permutation_p
+
+    baselines = {}
+    for f in [folder / "eval.json", *sorted(folder.glob("eval_*.json"))]:
+        if f.exists():
+            r = json.loads(f.read_text())
+            if "trained" in r and set(r["config_changes"]) <= {"seed"}:
+                baselines[(r["trained"]["n_pairs"], r["seed"], _noise_seed(r))] = r["trained"]
+    rows = []
+    for sub in SWEEP_FOLDERS:
+        runs = [json.loads(f.read_text()) for f in (folder / sub).glob("*.json")]
+        runs.sort(key=lambda r: (r["trained"]["n_pairs"], _noise_seed(r),
+                                 sorted((k, v) for k, v in r["config_changes"].items() if k != "seed")))
+        for r in runs:
+            t = r["trained"]
+            changed = {k: v for k, v in r["config_changes"].items() if k != "seed"}
+            base = baselines.get((t["n_pairs"], r["seed"], _noise_seed(r)))
+            if base is None:
+                versus = "| - | no default-config run of these pairs |"
+            else:
+                versus = (f"| {base['IR']:.1f} | {_p_text(paired_permutation_p(t['IR_per_pair'], base['IR_per_pair']))} |")
+            setting = ", ".join(f"{k} = {v:g}" for k, v in changed.items())
+            rows.append(f"| {setting} | {t['n_pairs']} ({r['seed']}) | {_noise_seed(r)} | "
+                        f"{t['IR']:.1f} [{t['IR_ci'][0]:.1f}, {t['IR_ci'][1]:.1f}] | {t['FMR']:.1f} | {t['RR']:.1f} " + versus)
+    if not rows:
+        return []
+    return [
+        "### Sweeps of one setting",
+        "",
+        "The trained weights with one config field changed (`evaluate --trained-only --t-hat T`, `--guidance-w W`,",
+        "`--ddim-eta E`, `--ddim-steps N`), against the default config (the official t_hat 150, w 4, DDIM eta 1,",
+        "20 steps) on the same pairs and noise seed; p: paired permutation test on the per-pair IR:",
+        "",
+        "| setting | pairs (seed) | noise seed | IR % | FMR % | RR % | default config's IR % | p |",
+        "|---|---|---|---|---|---|---|---|",
+        *rows,
+        "",
+    ]
+
+
 def write_card(folder: Path = M.WEIGHTS_DIR) -> Path:
     training = json.loads((folder / "training.json").read_text())
     plot_losses(training, folder / "loss_curves.png")
@@ -201,6 +254,7 @@ def write_card(folder: Path = M.WEIGHTS_DIR) -> Path:
             "",
         ]
     lines += _more_evaluations(folder)
+    lines += _sweeps(folder)
     lines += _diagnoses(folder)
     lines += [
         "## Limits",
