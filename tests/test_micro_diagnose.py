@@ -80,7 +80,29 @@ def test_depth_side_maps_names_a_pair_without_its_depth_camera_image(tiny):
 
     pair = synthetic.make_pair("indoor", seed=3, image_size=SIZE)
     with pytest.raises(ValueError, match="depth_camera_image=True"):
-        diagnose.depth_side_maps(pair, pipeline.depth_view(pair, FreeRegConfig()), tiny, (0, 4, 6))
+        view = pipeline.depth_view(pair, FreeRegConfig())
+        diagnose.depth_side_maps(pair, view, view, tiny, (0, 4, 6))
+
+
+def test_the_frame_hint_variant_changes_only_the_hint(tiny):
+    from freereg_lib import pipeline
+    from freereg_lib.micro import diagnose
+
+    cfg = FreeRegConfig()
+    # At full size (480 x 640) the 60,000 points fill a fifth of the depth camera's pixels.
+    pair = synthetic.make_pair("indoor", seed=3, depth_camera_image=True)
+    view = pipeline.depth_view(pair, cfg)
+    frame = diagnose.frame_view(pair, cfg)
+    assert (frame.raw > 0).mean() > (view.raw > 0).mean()
+    same = diagnose.depth_side_maps(pair, view, view, tiny, (0, 4))[1]
+    for k in (0, 4):  # the same hint and noise draw: the pipeline's own maps
+        np.testing.assert_array_equal(same["hint_from_frame"][k], same["freereg_d"][k])
+    other = diagnose.depth_side_maps(pair, view, frame, tiny, (0, 4))[1]
+    assert not np.allclose(other["hint_from_frame"][0], other["freereg_d"][0])
+    np.testing.assert_array_equal(other["freereg_d"][0], same["freereg_d"][0])
+    pair.depth_frame_gt = None
+    with pytest.raises(ValueError, match="depth_frame_gt"):
+        diagnose.frame_view(pair, cfg)
 
 
 def test_the_first_variant_is_the_pipelines_freereg_d():
@@ -104,10 +126,15 @@ def test_card_lists_the_decomposition_as_run(tmp_path):
            "freereg_d": {"IR": 8.5, "IR_ci": [5.8, 11.7]}, "generation_oracle": {"IR": 27.0, "IR_ci": [22.3, 32.2]},
            "same_modality": {"IR": 36.3, "IR_ci": [31.2, 41.8]},
            "p_freereg_d_vs_generation_oracle": 1 / 20001, "p_generation_oracle_vs_same_modality": 0.0123}
-    (tmp_path / "diagnose_100pairs_noise0.json").write_text(json.dumps(run))
+    (tmp_path / "diagnose_100pairs_noise0.json").write_text(json.dumps(run))  # a run before the frame hint
+    run = {**run, "noise_seed": 2, "hint_from_frame": {"IR": 9.0, "IR_ci": [6.0, 12.5]},
+           "p_freereg_d_vs_hint_from_frame": 0.25}
+    (tmp_path / "diagnose_100pairs_noise2.json").write_text(json.dumps(run))
     rows = [line for line in card._diagnoses(tmp_path) if line.startswith("| 100")]
-    assert rows == ["| 100 (2026) | default | committed | 8.5 [5.8, 11.7] | 27.0 [22.3, 32.2] | 36.3 [31.2, 41.8] "
-                    "| < 0.0001 | = 0.0123 |"]
+    assert rows == ["| 100 (2026) | default | committed | 8.5 [5.8, 11.7] | - | 27.0 [22.3, 32.2] | 36.3 [31.2, 41.8] "
+                    "| - | < 0.0001 | = 0.0123 |",
+                    "| 100 (2026) | 2 | committed | 8.5 [5.8, 11.7] | 9.0 [6.0, 12.5] | 27.0 [22.3, 32.2] | "
+                    "36.3 [31.2, 41.8] | = 0.2500 | < 0.0001 | = 0.0123 |"]
 
 
 def test_with_depth_camera_image_renders_the_same_pair_again():

@@ -96,7 +96,7 @@ def _more_evaluations(folder: Path) -> list[str]:
 
 def _diagnoses(folder: Path) -> list[str]:
     """Rows of the FreeReg-D decompositions (``diagnose_*.json``, :mod:`.diagnose`)."""
-    from .diagnose import VARIANTS
+    from .diagnose import COMPARISONS, VARIANTS
 
     runs = [json.loads(f.read_text()) for f in sorted(folder.glob("diagnose_*.json"))]
     if not runs:
@@ -105,20 +105,23 @@ def _diagnoses(folder: Path) -> list[str]:
         "### Where FreeReg-D loses its matches",
         "",
         "FreeReg-D's IR with the same image side, the depth side's decoder maps taken from (1) the",
-        "pipeline (ControlNet-guided DDIM from the depth hint), (2) the same ControlNet + UNet feature",
-        "pass on the forward-noised latent of the *true* image the depth camera would have seen, (3) the",
-        "image side's own path (UNet alone) on that true image (`python -m freereg_lib.micro.diagnose`):",
+        "pipeline (ControlNet-guided DDIM from the depth hint), (1b) the same with the hint made from the",
+        "depth camera's full rendered frame instead of the sampled cloud's projection, (2) the same",
+        "ControlNet + UNet feature pass on the forward-noised latent of the *true* image the depth camera",
+        "would have seen, (3) the image side's own path (UNet alone) on that true image",
+        "(`python -m freereg_lib.micro.diagnose`; '-': a run made before (1b) existed):",
         "",
-        "| pairs (seed) | noise seed | weights | (1) FreeReg-D IR % | (2) true image, ControlNet pass % | "
-        "(3) true image, image path % | p (1) vs (2) | p (2) vs (3) |",
-        "|---|---|---|---|---|---|---|---|",
+        "| pairs (seed) | noise seed | weights | (1) FreeReg-D IR % | (1b) hint from the full frame % | "
+        "(2) true image, ControlNet pass % | (3) true image, image path % | p (1) vs (1b) | p (1) vs (2) | "
+        "p (2) vs (3) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in runs:
-        cells = [f"{r[v]['IR']:.1f} [{r[v]['IR_ci'][0]:.1f}, {r[v]['IR_ci'][1]:.1f}]" for v in VARIANTS]
+        cells = [f"{r[v]['IR']:.1f} [{r[v]['IR_ci'][0]:.1f}, {r[v]['IR_ci'][1]:.1f}]" if v in r else "-"
+                 for v in VARIANTS]
+        ps = [_p_text(r[f"p_{a}_vs_{b}"]) if f"p_{a}_vs_{b}" in r else "-" for a, b in COMPARISONS]
         noise = r["noise_seed"] if r["noise_seed"] is not None else "default"
-        lines.append(f"| {r['n_pairs']} ({r['seed']}) | {noise} | {r['weights']} | " + " | ".join(cells) + " | "
-                     f"{_p_text(r[f'p_{VARIANTS[0]}_vs_{VARIANTS[1]}'])} | "
-                     f"{_p_text(r[f'p_{VARIANTS[1]}_vs_{VARIANTS[2]}'])} |")
+        lines.append(f"| {r['n_pairs']} ({r['seed']}) | {noise} | {r['weights']} | " + " | ".join(cells + ps) + " |")
     return lines + [""]
 
 

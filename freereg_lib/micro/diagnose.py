@@ -6,11 +6,14 @@
 The synthetic renderer can also shade the true image the depth camera would have seen
 (``make_pair(..., depth_camera_image=True)``), which no real cloud has. On held-out indoor
 pairs this runs FreeReg-D (layers 0, 4, 6; PCA; mutual nearest neighbours; IR at
-``cfg.tau_c``) three times, with the same image side and keypoints, changing only the decoder
+``cfg.tau_c``) four times, with the same image side and keypoints, changing only the decoder
 maps of the depth side:
 
 - ``freereg_d``: as the pipeline computes them (ControlNet-guided DDIM from the depth hint,
   then the feature pass at t_hat);
+- ``hint_from_frame``: the same, with the hint made from the depth camera's full rendered
+  frame (``Pair.depth_frame_gt``, as 3DMatch's sensor depth is used) instead of the
+  60,000-point cloud projected and densified: what the sampled cloud's holes cost the hint;
 - ``generation_oracle``: the same feature pass (ControlNet with the same hint + UNet at t_hat)
   on the forward-noised latent of the *true* depth-camera image, as if the sampling had
   generated exactly the real image;
@@ -32,7 +35,10 @@ import numpy as np
 
 from .evaluate import bootstrap_ci, paired_permutation_p
 
-VARIANTS = ("freereg_d", "generation_oracle", "same_modality")
+VARIANTS = ("freereg_d", "hint_from_frame", "generation_oracle", "same_modality")
+# The paired tests reported: the hint's cost, the generation's, the ControlNet pass's.
+COMPARISONS = (("freereg_d", "hint_from_frame"), ("freereg_d", "generation_oracle"),
+               ("generation_oracle", "same_modality"))
 
 
 def with_depth_camera_image(pair):
@@ -48,10 +54,11 @@ def with_depth_camera_image(pair):
                                image_size=pair.image_size, depth_camera_image=True)
 
 
-def depth_side_maps(pair, view, backend, layers) -> tuple[dict, dict[str, dict]]:
+def depth_side_maps(pair, view, frame_view, backend, layers) -> tuple[dict, dict[str, dict]]:
     """The image side's decoder maps and the depth side's under each of :data:`VARIANTS`,
-    ``{layer: (C, h, w) float32}``; ``pair.meta["depth_camera_image"]`` must hold the true
-    depth-camera image."""
+    ``{layer: (C, h, w) float32}``; ``view`` is the pipeline's depth view of ``pair``,
+    ``frame_view`` the one made from its full depth frame (:func:`frame_view`);
+    ``pair.meta["depth_camera_image"]`` must hold the true depth-camera image."""
     from .. import pipeline
 
     image_b = pair.meta.get("depth_camera_image")
@@ -62,9 +69,23 @@ def depth_side_maps(pair, view, backend, layers) -> tuple[dict, dict[str, dict]]
     maps_image, maps_depth = pipeline.diffusion_maps_batch([pair], [view], backend, layers)[0]
     return maps_image, {
         "freereg_d": maps_depth,
+        "hint_from_frame": D.depth_batch([frame_view.dense], layers)[0],
         "generation_oracle": D.depth_pass_on_images([image_b], [view.dense], layers)[0],
         "same_modality": D.rgb_batch([image_b], layers, noise_tag="depth-camera-image")[0],
     }
+
+
+def frame_view(pair, cfg):
+    """The depth view the pipeline would make if ``pair``'s depth frame were its sensor depth
+    (no projection of the sampled cloud; densified and normalised as the pipeline does)."""
+    import dataclasses
+
+    from .. import pipeline
+
+    if pair.depth_frame_gt is None:
+        raise ValueError(f"pair {pair.name} holds no full depth frame (depth_frame_gt); a synthetic pair "
+                         "made by synthetic.make_pair has one")
+    return pipeline.depth_view(dataclasses.replace(pair, sensor_depth=pair.depth_frame_gt), cfg)
 
 
 def pair_inlier_ratios(pair, backend, cfg) -> dict[str, float]:
@@ -72,7 +93,7 @@ def pair_inlier_ratios(pair, backend, cfg) -> dict[str, float]:
     from .. import metrics, pipeline
 
     view = pipeline.depth_view(pair, cfg)
-    maps_image, depth_maps = depth_side_maps(pair, view, backend, cfg.layers)
+    maps_image, depth_maps = depth_side_maps(pair, view, frame_view(pair, cfg), backend, cfg.layers)
     mono = backend.mono_depth(pair.image, depth_gt=pair.depth_gt)  # only lifts the image side
     out = {}
     for name, maps_depth in depth_maps.items():
@@ -107,13 +128,14 @@ def diagnose(n_pairs: int = 30, seed: int = 2026, weights_dir=None, random_weigh
         v = np.array([r[name] for r in rows])
         lo, hi = bootstrap_ci(v)
         result[name] = {"IR": 100 * float(v.mean()), "IR_ci": [100 * lo, 100 * hi], "IR_per_pair": v.tolist()}
-    for a, b in zip(VARIANTS, VARIANTS[1:]):
+    for a, b in COMPARISONS:
         result[f"p_{a}_vs_{b}"] = paired_permutation_p(result[a]["IR_per_pair"], result[b]["IR_per_pair"])
     return result
 
 
 LABELS = {
     "freereg_d": "FreeReg-D (depth side generated from the depth hint)",
+    "hint_from_frame": "the same, the hint made from the full depth frame",
     "generation_oracle": "the same feature pass on the true depth-camera image",
     "same_modality": "image side's path on the true depth-camera image",
 }
@@ -121,6 +143,7 @@ LABELS = {
 
 SHORT_LABELS = {
     "freereg_d": "generated (FreeReg-D)",
+    "hint_from_frame": "generated, hint from the full frame",
     "generation_oracle": "true image, ControlNet pass",
     "same_modality": "true image, image path",
 }
@@ -133,9 +156,12 @@ def report(result: dict) -> str:
     for name in VARIANTS:
         r = result[name]
         lines.append(f"  {LABELS[name]:55s} IR {r['IR']:5.1f} % [{r['IR_ci'][0]:.1f}, {r['IR_ci'][1]:.1f}]")
+    hint = result["hint_from_frame"]["IR"] - result["freereg_d"]["IR"]
     gen = result["generation_oracle"]["IR"] - result["freereg_d"]["IR"]
     cn = result["same_modality"]["IR"] - result["generation_oracle"]["IR"]
-    lines.append(f"  the generated image instead of the true one: {-gen:+.1f} IR points "
+    lines.append(f"  the cloud's projected hint instead of the full frame's: {-hint:+.1f} IR points "
+                 f"(p = {result['p_freereg_d_vs_hint_from_frame']:.4f}); "
+                 f"the generated image instead of the true one: {-gen:+.1f} IR points "
                  f"(p = {result['p_freereg_d_vs_generation_oracle']:.4f}); the ControlNet feature pass instead of "
                  f"the image side's UNet pass on the true image: {-cn:+.1f} (p = "
                  f"{result['p_generation_oracle_vs_same_modality']:.4f})")
