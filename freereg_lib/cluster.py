@@ -32,6 +32,25 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 EXECUTORS = ("local", "dask")
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+
+
+def worker_thread_env(n_workers: int, cores: int | None = None, environ=None) -> dict[str, str]:
+    """The ``*_NUM_THREADS`` each of ``n_workers`` local workers gives its notebook kernels: the
+    ``cores`` (this process's CPUs when None) shared out, at least one each; a variable set in
+    ``environ`` (``os.environ`` when None) is the user's and is left to it.
+
+    Without a cap every kernel's torch and OpenMP use all the cores and their threads spin
+    against each other: two micro FreeReg-D runs at once on 2 cores took 8.5x the time of one
+    after the other, one thread each 0.5x (benchmarks/README.md, "Threads of parallel kernels").
+    """
+    import os
+
+    environ = os.environ if environ is None else environ
+    if cores is None:
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    share = str(max(1, cores // max(1, n_workers)))
+    return {k: share for k in THREAD_VARIABLES if k not in environ}
 _OPTION_KEYS = ("scheduler", "workers", "gpus", "shards", "resources", "retries", "dashboard", "connect_timeout")
 # A scheduler address as distributed reads it: tcp://host:port, tls://..., or host:port.
 _ADDRESS = re.compile(r"([a-z][a-z0-9+]*://)?[^\s/:]+(:\d+)?")
@@ -256,21 +275,24 @@ class DaskExecutor:
         opts = self.options
         gpus = opts.gpus or []
         names = [f"gpu{g}" for g in gpus] or [str(i) for i in range(opts.workers or 2)]
+        threads = worker_thread_env(len(names))
         workers = {}
         for k, name in enumerate(names):
             # One thread: a worker runs one job (one kernel) at a time. No memory limit: the
             # job's memory is in its kernel, a child process the nanny does not measure; the
             # operating system's OOM killer ends a job that overflows (then Retry).
-            options = {"nthreads": 1, "memory_limit": 0, "silence_logs": logging.WARNING, "dashboard": False}
+            options = {"nthreads": 1, "memory_limit": 0, "silence_logs": logging.WARNING, "dashboard": False,
+                       "env": dict(threads)}
             if gpus:
-                options.update(env={"CUDA_VISIBLE_DEVICES": gpus[k]}, resources={"GPU": 1})
+                options["env"]["CUDA_VISIBLE_DEVICES"] = gpus[k]
+                options["resources"] = {"GPU": 1}
             workers[name] = {"cls": Nanny, "options": options}
         scheduler = {"cls": Scheduler, "options": {
             "host": "127.0.0.1", "allowed_failures": opts.retries,
             "dashboard": bool(opts.dashboard), "dashboard_address": opts.dashboard or ":0"}}
         # Dask caps numpy's threads at one per worker process for its many-small-tasks use; a
-        # job here is a whole notebook in its own kernel, which should see the environment the
-        # local executor gives it (the user's own *_NUM_THREADS still apply).
+        # job here is a whole notebook in its own kernel, whose share of the cores is set above
+        # (worker_thread_env; the user's own *_NUM_THREADS still apply).
         config = {f"distributed.nanny.pre-spawn-environ.{k}": None
                   for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
         # A worker gets its next job only when it is free: jobs are long, and a job queued on a

@@ -1,6 +1,12 @@
 import os
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy: see Makefile
+# `make test` runs two pytest workers (-n 2); torch's OpenMP threads of two processes on two
+# cores spin against each other (two at once took 8.5x the time of one after the other; one
+# thread each, 0.5x: benchmarks/README.md, "Threads of parallel kernels"). Notebook kernels
+# started by the tests inherit this.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("MKL_NUM_THREADS", "1")
 
 import numpy as np
 import pytest

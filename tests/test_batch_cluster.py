@@ -188,3 +188,22 @@ def test_grid_and_command_line_choose_the_executor_together():
     assert cluster.executor_spec("dask", "g.yaml") == {"kind": "dask"}
     remote = cluster.dask_options({"resources": "GPU=1, MEM=2e9", "scheduler": "tcp://10.0.0.5:8786"})
     assert remote.resources == {"GPU": 1.0, "MEM": 2e9} and remote.gpus == []
+
+
+def test_local_workers_share_the_cores_out_and_leave_the_users_thread_settings():
+    assert cluster.worker_thread_env(2, cores=2, environ={}) == dict.fromkeys(cluster.THREAD_VARIABLES, "1")
+    assert cluster.worker_thread_env(2, cores=16, environ={})["OMP_NUM_THREADS"] == "8"
+    assert cluster.worker_thread_env(3, cores=2, environ={})["MKL_NUM_THREADS"] == "1"  # at least one
+    assert cluster.worker_thread_env(2, cores=16, environ={"OMP_NUM_THREADS": "4"}) == {
+        "MKL_NUM_THREADS": "8", "OPENBLAS_NUM_THREADS": "8"}
+
+
+def test_a_local_clusters_worker_processes_see_their_share(monkeypatch):
+    import os
+
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.setenv("MKL_NUM_THREADS", "3")  # the user's: kept
+    with cluster.DaskExecutor(cluster.dask_options({"workers": 2})) as ex:
+        seen = ex.client.run(lambda: (os.environ.get("OMP_NUM_THREADS"), os.environ.get("MKL_NUM_THREADS")))
+    share = str(max(1, len(os.sched_getaffinity(0)) // 2))
+    assert sorted(seen.values()) == [(share, "3"), (share, "3")]
