@@ -22,7 +22,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from freereg_lib.cluster import THREAD_VARIABLES, worker_thread_env  # noqa: E402
+from freereg_lib.cluster import THREAD_VARIABLES, available_cores, worker_thread_env  # noqa: E402
 
 
 def run_copies(copies: int, pairs: int, env: dict) -> float:
@@ -41,7 +41,7 @@ def main(argv=None) -> int:
     p.add_argument("--copies", type=int, default=2)
     p.add_argument("--pairs", type=int, default=2)
     args = p.parse_args(argv)
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    cores = available_cores()
     free = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS")}
     shared = {**free, **worker_thread_env(args.copies, cores, environ={})}
     print(f"{cores} cores; each copy: micro FreeReg-D on {args.pairs} synthetic pair(s), models loaded included")

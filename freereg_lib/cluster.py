@@ -35,6 +35,13 @@ EXECUTORS = ("local", "dask")
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 
 
+def available_cores() -> int:
+    """The CPUs this process may run on (its affinity where the OS has one)."""
+    import os
+
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
 def worker_thread_env(n_workers: int, cores: int | None = None, environ=None) -> dict[str, str]:
     """The ``*_NUM_THREADS`` each of ``n_workers`` local workers gives its notebook kernels: the
     ``cores`` (this process's CPUs when None) shared out, at least one each; a variable set in
@@ -47,10 +54,11 @@ def worker_thread_env(n_workers: int, cores: int | None = None, environ=None) ->
     import os
 
     environ = os.environ if environ is None else environ
-    if cores is None:
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    cores = available_cores() if cores is None else cores
     share = str(max(1, cores // max(1, n_workers)))
     return {k: share for k in THREAD_VARIABLES if k not in environ}
+
+
 _OPTION_KEYS = ("scheduler", "workers", "gpus", "shards", "resources", "retries", "dashboard", "connect_timeout")
 # A scheduler address as distributed reads it: tcp://host:port, tls://..., or host:port.
 _ADDRESS = re.compile(r"([a-z][a-z0-9+]*://)?[^\s/:]+(:\d+)?")
@@ -293,8 +301,7 @@ class DaskExecutor:
         # Dask caps numpy's threads at one per worker process for its many-small-tasks use; a
         # job here is a whole notebook in its own kernel, whose share of the cores is set above
         # (worker_thread_env; the user's own *_NUM_THREADS still apply).
-        config = {f"distributed.nanny.pre-spawn-environ.{k}": None
-                  for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
+        config = {f"distributed.nanny.pre-spawn-environ.{k}": None for k in THREAD_VARIABLES}
         # A worker gets its next job only when it is free: jobs are long, and a job queued on a
         # worker that dies would be counted as one of the deaths it is allowed.
         config["distributed.scheduler.worker-saturation"] = 1.0

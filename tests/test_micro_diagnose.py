@@ -79,8 +79,8 @@ def test_depth_side_maps_names_a_pair_without_its_depth_camera_image(tiny):
     from freereg_lib.micro import diagnose
 
     pair = synthetic.make_pair("indoor", seed=3, image_size=SIZE)
+    view = pipeline.depth_view(pair, FreeRegConfig())
     with pytest.raises(ValueError, match="depth_camera_image=True"):
-        view = pipeline.depth_view(pair, FreeRegConfig())
         diagnose.depth_side_maps(pair, view, view, tiny, (0, 4, 6))
 
 

@@ -67,10 +67,20 @@ def _p_text(p: float) -> str:
     return f"< {1 / PERMUTATIONS:.4f}" if p <= 1.0 / (PERMUTATIONS + 1) + 1e-12 else f"= {p:.4f}"
 
 
-def _more_evaluations(folder: Path) -> list[str]:
-    """Rows of the further held-out runs (``eval_*.json``: more pairs, other noise seeds)."""
+def _noise_seed(run: dict) -> int:
+    """The diffusion features' noise seed of an ``evaluate`` result (the config's when unchanged)."""
     from ..config import FreeRegConfig
 
+    return run["config_changes"].get("seed", FreeRegConfig().seed)
+
+
+def _swept(run: dict) -> dict:
+    """The config fields an ``evaluate`` result changed, the noise seed left out."""
+    return {k: v for k, v in run["config_changes"].items() if k != "seed"}
+
+
+def _more_evaluations(folder: Path) -> list[str]:
+    """Rows of the further held-out runs (``eval_*.json``: more pairs, other noise seeds)."""
     runs = [json.loads(f.read_text()) for f in sorted(folder.glob("eval_*.json"))]
     runs = [r for r in runs if "trained" in r and "random" in r]
     if not runs:
@@ -86,9 +96,8 @@ def _more_evaluations(folder: Path) -> list[str]:
     ]
     for r in runs:
         t, rnd = r["trained"], r["random"]
-        noise = r["config_changes"].get("seed", FreeRegConfig().seed)
         lines.append(
-            f"| {t['n_pairs']} ({r['seed']}) | {noise} | {t['IR']:.1f} [{t['IR_ci'][0]:.1f}, {t['IR_ci'][1]:.1f}] | "
+            f"| {t['n_pairs']} ({r['seed']}) | {_noise_seed(r)} | {t['IR']:.1f} [{t['IR_ci'][0]:.1f}, {t['IR_ci'][1]:.1f}] | "
             f"{t['FMR']:.1f} | {t['RR']:.1f} | {rnd['IR']:.1f} [{rnd['IR_ci'][0]:.1f}, {rnd['IR_ci'][1]:.1f}] | "
             f"{r['IR_ratio']:.2f}x | {_p_text(r['p_value'])} |")
     return lines + [""]
@@ -128,12 +137,6 @@ def _diagnoses(folder: Path) -> list[str]:
 SWEEP_FOLDERS = ("t_hat", "guidance", "sampler")
 
 
-def _noise_seed(run: dict) -> int:
-    from ..config import FreeRegConfig
-
-    return run["config_changes"].get("seed", FreeRegConfig().seed)
-
-
 def _sweeps(folder: Path) -> list[str]:
     """Rows of the trained-only sweeps (``t_hat/``, ``guidance/``, ``sampler/``: ``evaluate
     --trained-only`` with one config field changed), each beside the default-config run of the
@@ -149,18 +152,16 @@ def _sweeps(folder: Path) -> list[str]:
     rows = []
     for sub in SWEEP_FOLDERS:
         runs = [json.loads(f.read_text()) for f in (folder / sub).glob("*.json")]
-        runs.sort(key=lambda r: (r["trained"]["n_pairs"], _noise_seed(r),
-                                 sorted((k, v) for k, v in r["config_changes"].items() if k != "seed")))
+        runs.sort(key=lambda r: (r["trained"]["n_pairs"], _noise_seed(r), sorted(_swept(r).items())))
         for r in runs:
-            t = r["trained"]
-            changed = {k: v for k, v in r["config_changes"].items() if k != "seed"}
-            base = baselines.get((t["n_pairs"], r["seed"], _noise_seed(r)))
+            t, noise = r["trained"], _noise_seed(r)
+            base = baselines.get((t["n_pairs"], r["seed"], noise))
             if base is None:
                 versus = "| - | no default-config run of these pairs |"
             else:
                 versus = (f"| {base['IR']:.1f} | {_p_text(paired_permutation_p(t['IR_per_pair'], base['IR_per_pair']))} |")
-            setting = ", ".join(f"{k} = {v:g}" for k, v in changed.items())
-            rows.append(f"| {setting} | {t['n_pairs']} ({r['seed']}) | {_noise_seed(r)} | "
+            setting = ", ".join(f"{k} = {v:g}" for k, v in _swept(r).items())
+            rows.append(f"| {setting} | {t['n_pairs']} ({r['seed']}) | {noise} | "
                         f"{t['IR']:.1f} [{t['IR_ci'][0]:.1f}, {t['IR_ci'][1]:.1f}] | {t['FMR']:.1f} | {t['RR']:.1f} " + versus)
     if not rows:
         return []
