@@ -150,6 +150,25 @@ def test_init_from_continues_one_stage_and_keeps_the_others(tmp_path):
     assert any(moved)
 
 
+def test_restart_controlnet_rebuilds_it_from_the_folders_unet(tmp_path):
+    np.savez(tmp_path / "views.npz", n_scenes=2, views_per_scene=4, **_views())
+    common = ["--views", str(tmp_path / "views.npz"), "--scenes", "2", "--views-per-scene", "4",
+              "--batch", "2", "--checkpoint-every", "2", "--threads", "1", "--warmup", "1"]
+    T.main(common + ["--out", str(tmp_path / "a"), "--steps-vae", "1", "--steps-unet", "1",
+                     "--steps-controlnet", "2", "--export", str(tmp_path / "w")])
+    T.main(common + ["--out", str(tmp_path / "b"), "--init-from", str(tmp_path / "w"), "--stages", "controlnet",
+                     "--restart-controlnet", "--steps-controlnet", "1", "--export", str(tmp_path / "w2")])
+    first = json.loads((tmp_path / "w/training.json").read_text())
+    again = json.loads((tmp_path / "w2/training.json").read_text())
+    # Step 0 again, with zero convolutions: the loss is the UNet's on step 0's draws, as in the
+    # first run (there the UNet was float32, here its float16 export).
+    assert len(again["stages"]["controlnet"]["loss"]) == 1
+    assert again["stages"]["controlnet"]["loss"][0] == pytest.approx(first["stages"]["controlnet"]["loss"][0], rel=1e-2)
+    assert "controlnet rebuilt from this UNet (ControlNetModel.from_unet) and trained from step 0 to 1" in again["history"]
+    with pytest.raises(SystemExit):
+        T.parse_args(["--restart-controlnet", "--stages", "controlnet"])
+
+
 # ---------------------------------------------------------------------------- backend
 
 def test_micro_backend_loads_the_committed_weights_and_the_hint_acts():

@@ -24,7 +24,8 @@ the step number), checkpoints every ``--checkpoint-every`` steps and resumes fro
 checkpoint when run again; a finished stage is skipped. ``--init-from`` continues an exported
 folder instead of starting from scratch: the stages named in ``--stages`` train on from their
 weights and step counts there (float16 weights, a fresh optimizer), the others are kept as they
-are. ``--export`` writes the weights and
+are; ``--restart-controlnet`` instead builds the ControlNet afresh from the UNet at hand, as the
+retraining schedule does once the UNet is final. ``--export`` writes the weights and
 ``training.json`` (arguments, steps, times, loss curves) for the model card.
 """
 from __future__ import annotations
@@ -76,7 +77,13 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "steps and log): stages left out of --stages are taken from it as they are; a "
                         "stage in --stages starts from its weights there and trains on from its step "
                         "count with a fresh optimizer (a warm restart: warm-up again, then --lr-*)")
-    return p.parse_args(argv)
+    p.add_argument("--restart-controlnet", action="store_true",
+                   help="with --init-from and the controlnet stage: build the ControlNet afresh from the "
+                        "UNet at hand (ControlNetModel.from_unet, step 0) instead of continuing the folder's")
+    args = p.parse_args(argv)
+    if args.restart_controlnet and not (args.init_from and "controlnet" in args.stages):
+        p.error("--restart-controlnet needs --init-from and the controlnet stage in --stages")
+    return args
 
 
 # ------------------------------------------------------------------------------- data
@@ -371,8 +378,10 @@ def export(models, logs: dict, args, out_dir: Path, seconds: float) -> None:
     }
     if args.init_from:
         earlier = json.loads(Path(args.init_from, "training.json").read_text())
-        went_on = ", ".join(f"{k} from step {len(earlier['stages'][k]['loss'])} to {logs[k]['steps']}"
-                            for k in args.stages)
+        went_on = ", ".join(
+            f"{k} rebuilt from this UNet (ControlNetModel.from_unet) and trained from step 0 to {logs[k]['steps']}"
+            if k == "controlnet" and args.restart_controlnet
+            else f"{k} from step {len(earlier['stages'][k]['loss'])} to {logs[k]['steps']}" for k in args.stages)
         before = earlier.get("history", "").rstrip()
         facts["history"] = " ".join(filter(None, [
             before + ("." if before and not before.endswith(".") else ""),
@@ -440,7 +449,7 @@ def main(argv=None) -> int:
         return _finish(models, logs, args, t_start)
 
     if "controlnet" in args.stages:
-        if "controlnet" not in earlier:
+        if "controlnet" not in earlier or args.restart_controlnet:
             # Built from the trained UNet's encoder, as ControlNet is from SD's.
             from diffusers import ControlNetModel
 
@@ -449,7 +458,7 @@ def main(argv=None) -> int:
             den.controlnet = models["controlnet"]
         logs["controlnet"] = run_stage("controlnet", models["controlnet"], lambda r, g: den.train_loss(r, g, True),
                                        lambda: den.val_loss(True), args.steps_controlnet, args.lr_controlnet,
-                                       args, out, earlier.get("controlnet"))
+                                       args, out, None if args.restart_controlnet else earlier.get("controlnet"))
     elif not earlier:
         load_stage_weights("controlnet", models["controlnet"], out)
     freeze(models["controlnet"])
