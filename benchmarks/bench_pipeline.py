@@ -166,10 +166,9 @@ def device_info(mode: str, device: str | None) -> dict:
     import open3d
     import torch
 
-    try:
-        n_cpu = len(os.sched_getaffinity(0))
-    except AttributeError:
-        n_cpu = os.cpu_count()
+    from freereg_lib.cluster import available_cores
+
+    n_cpu = available_cores()
     info = {
         "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         "mode": mode,

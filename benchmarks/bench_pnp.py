@@ -49,10 +49,9 @@ def device_line() -> str:
     """CPU model, usable cores, load average, OpenCV version and threads, date."""
     import cv2
 
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:
-        cores = os.cpu_count() or 0
+    from freereg_lib.cluster import available_cores
+
+    cores = available_cores()
     load = " ".join(f"{x:.2f}" for x in os.getloadavg())
     date = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     return (f"device: CPU {cpu_model()}, {cores} cores (load average {load}); "
