@@ -31,13 +31,15 @@ WARM = 2  # steps before the timed ones: the first steps of a stage pay for allo
 
 def schedule_steps() -> list[dict[str, int]]:
     """Steps each phase of the committed schedule trains, per stage (a continued stage trains
-    from the step the previous phase left it at)."""
+    from the step the previous phase left it at, a restarted ControlNet from step 0)."""
     from freereg_lib.micro import retrain, train_diffusion as T
 
     done = {s: 0 for s in T.STAGES}
     phases = []
     for argv in retrain.phase_argv(Path("x"), Path("y"), None):
         a = T.parse_args(argv)
+        if a.restart_controlnet:
+            done["controlnet"] = 0
         target = {s: getattr(a, f"steps_{s}") for s in T.STAGES}
         phases.append({s: target[s] - done[s] for s in a.stages} | {"rooms": a.scenes})
         done.update({s: target[s] for s in a.stages})

@@ -20,17 +20,25 @@ WEIGHTS = Path(__file__).resolve().parents[1] / "freereg_lib" / "micro" / "weigh
 def test_the_schedule_is_the_one_the_committed_weights_record(tmp_path):
     first, second, last = (T.parse_args(a) for a in R.phase_argv(tmp_path, tmp_path / "w", threads=None))
     facts = json.loads((WEIGHTS / "training.json").read_text())
-    recorded = {k: v for k, v in facts["arguments"].items() if k != "init_from"}
-    assert {k: v for k, v in vars(last).items() if k in recorded} == recorded
+    steps = {k: v["steps"] for k, v in facts["stages"].items()}
     assert second.init_from == first.export and last.init_from == second.export
     assert last.export == str(tmp_path / "w")
-    assert first.init_from is None and first.stages == list(T.STAGES)
-    # Phase 1 made the VAE (kept since) and the UNet / ControlNet that phase 2 continued.
-    assert first.steps_vae == facts["stages"]["vae"]["steps"] and first.scenes == 500
-    assert "unet from step 2000 to 4000" in facts["history"] and first.steps_unet == 2000
-    assert "controlnet from step 1200 to 2000" in facts["history"] and first.steps_controlnet == 1200
-    assert (second.steps_unet, second.steps_controlnet, second.lr_schedule) == (4000, 2000, "constant")
-    assert "unet from step 4000 to 6000, controlnet from step 2000 to 2600" in facts["history"]
+    # The UNet's path: round 2 from scratch on 500 rooms, round 4 on 2,000, round 5 with the decay.
+    assert first.init_from is None and first.stages == list(T.STAGES) and first.scenes == 500
+    assert (first.steps_vae, first.steps_unet) == (steps["vae"], 2000)
+    assert "unet from step 2000 to 4000" in facts["history"]
+    assert (second.stages, second.steps_unet, second.lr_schedule) == (["unet"], 4000, "constant")
+    assert "unet from step 4000 to 6000" in facts["history"] and "--lr-schedule cosine: unet" in facts["history"]
+    assert (last.steps_unet, last.lr_schedule) == (steps["unet"], "cosine")
+    # The ControlNet: the last round rebuilt it from the final UNet, so earlier phases train none.
+    assert first.steps_controlnet == 0 and "controlnet" not in second.stages
+    recorded = facts["arguments"]
+    assert recorded["restart_controlnet"] and last.restart_controlnet and "controlnet" in last.stages
+    for key in ("scenes", "views_per_scene", "batch", "lr_controlnet", "warmup", "lr_schedule", "seed"):
+        assert getattr(last, key) == recorded[key], key
+    assert last.steps_controlnet == steps["controlnet"] == recorded["steps_controlnet"]
+    assert (f"controlnet rebuilt from this UNet (ControlNetModel.from_unet) and trained from step 0 to "
+            f"{steps['controlnet']}") in facts["history"]
 
 
 def test_first_rooms_of_a_render_are_the_smaller_render():
@@ -46,8 +54,9 @@ def test_first_rooms_of_a_render_are_the_smaller_render():
 def test_both_phases_run_in_order_and_the_second_continues_the_first(tmp_path, monkeypatch, capsys):
     tiny = ["--batch", "2", "--warmup", "1", "--checkpoint-every", "2"]
     monkeypatch.setattr(R, "PHASES", (
-        (2, ["--steps-vae", "2", "--steps-unet", "2", "--steps-controlnet", "2", *tiny]),
-        (3, ["--stages", "unet", "controlnet", "--steps-unet", "3", "--steps-controlnet", "3", *tiny])))
+        (2, ["--steps-vae", "2", "--steps-unet", "2", "--steps-controlnet", "0", *tiny]),
+        (3, ["--stages", "unet", "controlnet", "--restart-controlnet", "--steps-unet", "3",
+             "--steps-controlnet", "3", *tiny])))
     assert R.main(["--out", str(tmp_path), "--threads", "1"]) == 0
     with np.load(tmp_path / "views_indoor_2.npz") as z:
         assert int(z["n_scenes"]) == 2 and len(z["rgb"]) == 2 * R.VIEWS_PER_SCENE
@@ -56,5 +65,23 @@ def test_both_phases_run_in_order_and_the_second_continues_the_first(tmp_path, m
     assert final["stages"]["vae"] == first["stages"]["vae"]
     assert final["stages"]["unet"]["loss"][:2] == first["stages"]["unet"]["loss"]
     assert len(final["stages"]["unet"]["loss"]) == len(final["stages"]["controlnet"]["loss"]) == 3
-    assert "unet from step 2 to 3, controlnet from step 2 to 3" in final["history"]
+    assert first["stages"]["controlnet"]["loss"] == []
+    assert ("unet from step 2 to 3, controlnet rebuilt from this UNet (ControlNetModel.from_unet) and trained "
+            "from step 0 to 3") in final["history"]
     assert "total" in capsys.readouterr().out.strip().splitlines()[-1]
+
+
+def test_the_training_benchmark_prices_every_committed_step_once(monkeypatch):
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from bench_micro_training import schedule_steps
+
+    facts = json.loads((WEIGHTS / "training.json").read_text())
+    phases = schedule_steps()
+    for stage in T.STAGES:
+        assert sum(ph.get(stage, 0) for ph in phases) == facts["stages"][stage]["steps"], stage
+    # A restarted ControlNet trains from step 0, whatever an earlier phase left it at.
+    monkeypatch.setattr(R, "PHASES", ((2, ["--steps-controlnet", "1200"]),
+                                      (2, ["--stages", "controlnet", "--restart-controlnet", "--steps-controlnet", "2600"])))
+    assert [ph["controlnet"] for ph in schedule_steps()] == [1200, 2600]

@@ -20,9 +20,12 @@ from . import models as M
 # Measured, not computed: the wall times `retrain` printed (README, "Retrain and re-measure").
 RETRAIN_MEASURED = (
     "Retraining from scratch (`python -m freereg_lib.micro.retrain`), measured on a 2-core AMD EPYC with"
-    " nothing else running: rendering and phases 1-2 (rounds 2 and 4) in one run of 125.4 min"
-    " (2026-12-03: rendering 17.0, phase 1 59.6, phase 2 48.8 min), phase 3 (round 5) as its own"
-    " training run of 46.1 min the same day (a 12-second test ran beside it); 171.5 min in all."
+    " nothing else running while the schedule still trained a ControlNet in every phase: rendering and"
+    " phases 1-2 (rounds 2 and 4) in one run of 125.4 min (2026-12-03: rendering 17.0, phase 1 59.6,"
+    " phase 2 48.8 min), phase 3 (round 5) as its own training run of 46.1 min the same day; 171.5 min in"
+    " all. Since round 6 the schedule trains the ControlNet once, on the final UNet: the same steps of"
+    " every stage (VAE 700, UNet 6,000, ControlNet 2,600), renders and encodes, moved, not timed end to end"
+    " (round 6's 2,600 ControlNet steps took 35.3 min on the 2-core AMD EPYC of 2026-12-04)."
 )
 
 

@@ -4,14 +4,19 @@ of their schedule, then the total time.
     python -m freereg_lib.micro.retrain [--out runs/micro/retrain]
         [--export runs/micro/retrain/weights] [--threads N]
 
-The committed weights were made in three phases (``weights/training.json``, "history"), and this
-runs them in order with :mod:`.train_diffusion`:
+The committed weights were made in four rounds (``weights/training.json``, "history"); their
+UNet took three phases and their ControlNet, rebuilt from the final UNet in round 6, one, and this
+runs those phases in order with :mod:`.train_diffusion`:
 
-1. from scratch on rooms 0-499: VAE 700, UNet 2,000, ControlNet 1,200 steps (round 2);
-2. ``--init-from`` phase 1's export on rooms 0-1999: UNet on to 4,000 steps, ControlNet on to
-   2,000, the VAE kept (round 4);
-3. ``--init-from`` phase 2's export on the same rooms: UNet on to 6,000 steps, ControlNet on to
-   2,600, each with a cosine decay of the learning rate to 0 (round 5).
+1. from scratch on rooms 0-499: VAE 700, UNet 2,000 steps (round 2's; its ControlNet is not
+   trained, ``--steps-controlnet 0``);
+2. ``--init-from`` phase 1's export on rooms 0-1999: the UNet on to 4,000 steps (round 4's);
+3. ``--init-from`` phase 2's export on the same rooms: the UNet on to 6,000 steps (round 5's), then
+   a ControlNet built afresh from it (``--restart-controlnet``) and trained 2,600 steps (round 6's),
+   each with a cosine decay of the learning rate to 0.
+
+The ControlNets that rounds 2, 4 and 5 trained on the intermediate UNets are left out: round 6
+replaced them, and only their UNet steps reach the committed weights.
 
 The 2,000 rooms are rendered once; phase 1 reads their first 500 (a room's views depend on its
 index alone, so they are the views a 500-room render makes). Each phase resumes from its
@@ -30,10 +35,10 @@ from .views import load_or_render, save_views
 VIEWS_PER_SCENE = 4
 # (rooms, train_diffusion arguments) of each phase, as the committed weights were made.
 PHASES = (
-    (500, ["--steps-vae", "700", "--steps-unet", "2000", "--steps-controlnet", "1200"]),
-    (2000, ["--stages", "unet", "controlnet", "--steps-unet", "4000", "--steps-controlnet", "2000"]),
-    (2000, ["--stages", "unet", "controlnet", "--steps-unet", "6000", "--steps-controlnet", "2600",
-            "--lr-schedule", "cosine"]),
+    (500, ["--steps-vae", "700", "--steps-unet", "2000", "--steps-controlnet", "0"]),
+    (2000, ["--stages", "unet", "--steps-unet", "4000"]),
+    (2000, ["--stages", "unet", "controlnet", "--restart-controlnet", "--steps-unet", "6000",
+            "--steps-controlnet", "2600", "--lr-schedule", "cosine"]),
 )
 
 

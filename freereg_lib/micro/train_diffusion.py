@@ -385,7 +385,7 @@ def export(models, logs: dict, args, out_dir: Path, seconds: float) -> None:
         before = earlier.get("history", "").rstrip()
         facts["history"] = " ".join(filter(None, [
             before + ("." if before and not before.endswith(".") else ""),
-            f"Continued with --init-from {args.init_from} on {args.scenes} rooms: {went_on} (its float16 weights, "
+            f"Continued with --init-from {args.init_from} on {args.scenes} rooms: {went_on} (the folder's float16 weights, "
             f"a fresh AdamW with a {args.warmup}-step warm-up"
             + ("" if args.lr_schedule == "constant" else ", then a cosine to 0")
             + f"; the steps drew what an uninterrupted run draws); "
