@@ -72,9 +72,7 @@ def test_both_phases_run_in_order_and_the_second_continues_the_first(tmp_path, m
 
 
 def test_the_training_benchmark_prices_every_committed_step_once(monkeypatch):
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "benchmarks"))
     from bench_micro_training import schedule_steps
 
     facts = json.loads((WEIGHTS / "training.json").read_text())

@@ -4,9 +4,9 @@ of their schedule, then the total time.
     python -m freereg_lib.micro.retrain [--out runs/micro/retrain]
         [--export runs/micro/retrain/weights] [--threads N]
 
-The committed weights were made in four rounds (``weights/training.json``, "history"); their
-UNet took three phases and their ControlNet, rebuilt from the final UNet in round 6, one, and this
-runs those phases in order with :mod:`.train_diffusion`:
+The committed weights were made over rounds 1-6 (``weights/training.json``, "history"); the steps
+that reach them are the UNet's of three phases and the ControlNet's of one (round 6 rebuilt it from
+the final UNet), and this runs those phases in order with :mod:`.train_diffusion`:
 
 1. from scratch on rooms 0-499: VAE 700, UNet 2,000 steps (round 2's; its ControlNet is not
    trained, ``--steps-controlnet 0``);
