@@ -169,6 +169,95 @@ def test_restart_controlnet_rebuilds_it_from_the_folders_unet(tmp_path):
         T.parse_args(["--restart-controlnet", "--stages", "controlnet"])
 
 
+def test_min_snr_weights_keep_the_noisy_steps_and_damp_the_clean_ones():
+    w = T.min_snr_weight(torch.tensor([0.5, 5.0, 10.0, 50.0]), 5.0)
+    assert w.tolist() == pytest.approx([1.0, 1.0, 0.5, 0.1])
+
+
+def _denoising(args):
+    torch.manual_seed(0)
+    models = M.build(seed=0)
+    T.freeze(models["text_encoder"])
+    data = T.Data(_views(), views_per_scene=4)
+    latents = T.encode_latents(T.freeze(models["vae"]), data.rgb)
+    return T.Denoising(models, data, latents, T.parse_args(args))
+
+
+def test_min_snr_loss_is_the_mse_with_weights_at_most_one():
+    den = _denoising(["--batch", "4"])
+    idx, flips, no = np.arange(4), np.zeros(4, dtype=bool), np.zeros(4, dtype=bool)
+
+    def loss(seed, gamma):
+        with torch.no_grad():
+            return den.loss(idx, flips, torch.Generator().manual_seed(seed), False, no, gamma).item()
+
+    def clean_steps(seed):
+        """How many of the seed's four timesteps have SNR > 5 (drawn after the latent and noise draws)."""
+        g = torch.Generator().manual_seed(seed)
+        for _ in range(2):
+            torch.randn((4, *den.mean.shape[2:]), generator=g)
+        return int((den.snr[torch.randint(0, 1000, (4,), generator=g)] > 5).sum())
+
+    counts = {seed: clean_steps(seed) for seed in range(40)}
+    noisy, mixed = min(counts, key=counts.get), max(counts, key=counts.get)
+    assert counts[noisy] == 0 and counts[mixed] > 0
+    assert loss(noisy, 1e12) == pytest.approx(loss(noisy, None), rel=1e-6)
+    assert loss(noisy, 5.0) == pytest.approx(loss(noisy, None), rel=1e-6)  # every weight 1
+    assert loss(mixed, 5.0) < loss(mixed, None)  # the nearly clean steps damped
+
+
+def test_a_bf16_autocast_unet_step_lowers_the_loss_on_a_fixed_batch():
+    den = _denoising(["--batch", "4"])
+    idx, flips, no = np.arange(2), np.zeros(2, dtype=bool), np.zeros(2, dtype=bool)
+
+    def loss():
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            return den.loss(idx, flips, torch.Generator().manual_seed(1), False, no)
+
+    assert loss().dtype == torch.float32  # mse_loss runs in float32 under autocast
+    losses = _fit(den.unet, loss, 6, 3e-3)
+    assert losses[-1] < 0.8 * losses[0], losses
+
+
+def test_mixed_precision_changes_the_arithmetic_not_the_draws(tmp_path):
+    np.savez(tmp_path / "views.npz", n_scenes=2, views_per_scene=4, **_views())
+    common = ["--views", str(tmp_path / "views.npz"), "--scenes", "2", "--views-per-scene", "4",
+              "--stages", "vae", "--steps-vae", "2", "--batch", "2", "--threads", "1"]
+    T.main(common + ["--out", str(tmp_path / "f32")])
+    T.main(common + ["--out", str(tmp_path / "bf16"), "--mixed-precision", "bf16"])
+    a = torch.load(tmp_path / "f32/vae/checkpoint.pt", weights_only=False)
+    b = torch.load(tmp_path / "bf16/vae/checkpoint.pt", weights_only=False)
+    assert a["log"]["loss"] != b["log"]["loss"]
+    # the same crops and noise, rounded differently: the losses agree to bfloat16's precision
+    assert b["log"]["loss"] == pytest.approx(a["log"]["loss"], rel=2e-2)
+    assert all(v.dtype == torch.float32 for v in b["model"].values())  # float32 master weights
+
+
+def test_restart_unet_trains_a_fresh_unet_on_the_folders_vae(tmp_path):
+    np.savez(tmp_path / "views.npz", n_scenes=2, views_per_scene=4, **_views())
+    common = ["--views", str(tmp_path / "views.npz"), "--scenes", "2", "--views-per-scene", "4",
+              "--batch", "2", "--checkpoint-every", "2", "--threads", "1", "--warmup", "1"]
+    T.main(common + ["--out", str(tmp_path / "a"), "--steps-vae", "1", "--steps-unet", "2",
+                     "--steps-controlnet", "1", "--export", str(tmp_path / "w")])
+    T.main(common + ["--out", str(tmp_path / "b"), "--init-from", str(tmp_path / "w"), "--stages", "unet",
+                     "controlnet", "--restart-unet", "--restart-controlnet", "--steps-unet", "1",
+                     "--steps-controlnet", "1", "--snr-gamma", "5", "--export", str(tmp_path / "w2")])
+    first = json.loads((tmp_path / "w/training.json").read_text())
+    again = json.loads((tmp_path / "w2/training.json").read_text())
+    assert len(again["stages"]["unet"]["loss"]) == 1 and again["stages"]["vae"] == first["stages"]["vae"]
+    # step 0 of the same seeded UNet on step 0's draws (the folder's VAE in float16 now; SNR weights <= 1)
+    assert again["stages"]["unet"]["loss"][0] <= first["stages"]["unet"]["loss"][0] * 1.01
+    assert "unet rebuilt (seeded random weights) and trained from step 0 to 1" in again["history"]
+    assert "Min-SNR weighted, gamma 5" in again["history"]
+    a, b = M.load(tmp_path / "w"), M.load(tmp_path / "w2")
+    for v, w in zip(a["vae"].state_dict().values(), b["vae"].state_dict().values()):
+        assert torch.equal(v, w)
+    with pytest.raises(SystemExit):  # the folder's ControlNet belongs to the old UNet
+        T.parse_args(["--init-from", "w", "--restart-unet", "--stages", "unet", "controlnet"])
+    with pytest.raises(SystemExit):
+        T.parse_args(["--snr-gamma", "0"])
+
+
 # ---------------------------------------------------------------------------- backend
 
 def test_micro_backend_loads_the_committed_weights_and_the_hint_acts():
