@@ -7,9 +7,11 @@ committed schedule (``freereg_lib.micro.retrain``) costs at those rates (issue 1
 Renders ``--rooms`` training rooms (timed: rooms per second), then runs
 ``train_diffusion.main`` on them at the real size (128 x 192, batch 16) twice: 2 steps of each
 stage, then resumed to ``2 + --steps``; a stage's rate is the seconds its checkpoint log gained
-over those steps (each includes one validation, as every 100th step of a real run does). The
+over those steps (each includes one validation, as every 100th step of a real run does). Both
+precisions are timed: float32 and ``--mixed-precision bf16`` (bfloat16 autocast). The
 latent encoding is timed on all the views. The estimate multiplies the steps every phase of
-``retrain.PHASES`` trains by these rates and adds the rendering and the encoding; it leaves out
+``retrain.PHASES`` trains by the rates of that phase's precision and adds the rendering and the
+encoding; it leaves out
 loading the views and models (seconds). Prints the machine's CPU and load average, since the
 CPU may be shared.
 """
@@ -27,6 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_pipeline import cpu_model  # noqa: E402  (also puts the repository on sys.path)
 
 WARM = 2  # steps before the timed ones: the first steps of a stage pay for allocation
+PRECISIONS = ("no", "bf16")  # train_diffusion --mixed-precision
 
 
 def schedule_steps() -> list[dict[str, int]]:
@@ -41,7 +44,8 @@ def schedule_steps() -> list[dict[str, int]]:
         if a.restart_controlnet:
             done["controlnet"] = 0
         target = {s: getattr(a, f"steps_{s}") for s in T.STAGES}
-        phases.append({s: target[s] - done[s] for s in a.stages} | {"rooms": a.scenes})
+        phases.append({s: target[s] - done[s] for s in a.stages}
+                      | {"rooms": a.scenes, "precision": a.mixed_precision})
         done.update({s: target[s] for s in a.stages})
     return phases
 
@@ -74,24 +78,28 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         save_views(views, tmp / "views.npz", a.rooms, retrain.VIEWS_PER_SCENE)
-        common = ["--out", str(tmp / "run"), "--views", str(tmp / "views.npz"), "--scenes", str(a.rooms),
-                  "--threads", str(a.threads)]
+        common = ["--views", str(tmp / "views.npz"), "--scenes", str(a.rooms), "--threads", str(a.threads)]
 
-        def run(steps: int) -> dict[str, float]:
-            T.main(common + ["--steps-vae", str(steps), "--steps-unet", str(steps),
-                             "--steps-controlnet", str(steps), "--checkpoint-every", str(steps)])
-            return {s: torch.load(tmp / "run" / s / "checkpoint.pt", weights_only=False)["log"]["seconds"]
+        def run(steps: int, precision: str) -> dict[str, float]:
+            out = tmp / f"run_{precision}"
+            T.main(common + ["--out", str(out), "--steps-vae", str(steps), "--steps-unet", str(steps),
+                             "--steps-controlnet", str(steps), "--checkpoint-every", str(steps),
+                             "--mixed-precision", precision])
+            return {s: torch.load(out / s / "checkpoint.pt", weights_only=False)["log"]["seconds"]
                     for s in T.STAGES}
 
-        before = run(WARM)
-        after = run(WARM + a.steps)
-    rate = {s: (after[s] - before[s]) / a.steps for s in T.STAGES}
+        rates = {}
+        for precision in PRECISIONS:
+            before = run(WARM, precision)
+            after = run(WARM + a.steps, precision)
+            rates[precision] = {s: (after[s] - before[s]) / a.steps for s in T.STAGES}
 
     print(f"\nrendering: {rooms_per_s:.2f} rooms/s ({a.rooms} rooms); latent encoding: {views_per_s:.1f} views/s "
           f"(each view and its mirror image)")
-    print("| stage | s per step (batch 16) |\n|---|---|")
+    print("| stage | s per step, float32 (batch 16) | bf16 autocast | speed-up |\n|---|---|---|---|")
     for s in T.STAGES:
-        print(f"| {s} | {rate[s]:.3f} |")
+        f32, bf16 = rates["no"][s], rates["bf16"][s]
+        print(f"| {s} | {f32:.3f} | {bf16:.3f} | {f32 / bf16:.2f}x |")
 
     phases = schedule_steps()
     biggest = max(ph["rooms"] for ph in phases)
@@ -99,7 +107,8 @@ def main(argv=None) -> int:
     for i, ph in enumerate(phases, 1):
         n_views = ph["rooms"] * retrain.VIEWS_PER_SCENE
         rows.append((f"phase {i}: encoding", f"{n_views} views", n_views / views_per_s))
-        rows += [(f"phase {i}: {s}", f"{ph[s]} steps", ph[s] * rate[s]) for s in T.STAGES if s in ph]
+        rate, tag = rates[ph["precision"]], "" if ph["precision"] == "no" else f" ({ph['precision']})"
+        rows += [(f"phase {i}: {s}{tag}", f"{ph[s]} steps", ph[s] * rate[s]) for s in T.STAGES if s in ph]
     print("\nThe committed schedule (python -m freereg_lib.micro.retrain) at these rates, estimated:")
     print("| part | work | min |\n|---|---|---|")
     for name, work, sec in rows:
