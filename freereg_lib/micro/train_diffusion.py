@@ -142,7 +142,7 @@ def _flip(x, flips):
 
     x = x.clone()
     if flips.any():
-        f = torch.from_numpy(flips).to(x.device)
+        f = _on(flips, x)
         x[f] = torch.flip(x[f], dims=[-1])
     return x
 
@@ -392,7 +392,7 @@ class Denoising:
     def train_loss(self, rng, g, with_controlnet):
         idx, flips = self.data.batch_index(rng, self.args.batch)
         drop = rng.random(len(idx)) < TEXT_DROP
-        gamma = None if with_controlnet else getattr(self.args, "snr_gamma", None)
+        gamma = None if with_controlnet else self.args.snr_gamma
         return self.loss(idx, flips, g, with_controlnet, drop, gamma)
 
     def val_loss(self, with_controlnet):
@@ -437,6 +437,7 @@ def export(models, logs: dict, args, out_dir: Path, seconds: float) -> None:
     }
     if args.init_from:
         earlier = json.loads(Path(args.init_from, "training.json").read_text())
+
         def went(k):
             if k == "controlnet" and args.restart_controlnet:
                 return f"{k} rebuilt from this UNet (ControlNetModel.from_unet) and trained from step 0 to {logs[k]['steps']}"
