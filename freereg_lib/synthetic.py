@@ -385,8 +385,29 @@ class _Scene:
         return rgb.reshape(*size, 3)
 
 
+class _Looks:
+    """The appearance draws of an indoor scene: colours, textures and their scales.
+
+    Every draw is also made from the scene's generator ``rng``, so the geometry, poses and
+    cloud drawn after it are the same whether or not ``redraw`` is set; with ``redraw`` (a
+    generator of its own) the value used is drawn from it instead: the same room in another
+    colouring from the world's prior.
+    """
+
+    def __init__(self, rng: np.random.Generator, redraw: np.random.Generator | None = None) -> None:
+        self.rng, self.redraw = rng, redraw
+
+    def uniform(self, low=0.0, high=1.0, size=None):
+        value = self.rng.uniform(low, high, size)
+        return value if self.redraw is None else self.redraw.uniform(low, high, size)
+
+    def random(self) -> float:
+        value = self.rng.random()
+        return value if self.redraw is None else self.redraw.random()
+
+
 def _part(
-    rng: np.random.Generator,
+    rng: np.random.Generator | _Looks,
     shape: int,
     centre,
     size,
@@ -399,7 +420,8 @@ def _part(
     yaw: float = 0.0,
     tex_axis=(1.0, 0.0, 0.0),
 ) -> _Part:
-    """A part with its colour jittered and its texture offset drawn from ``rng``."""
+    """A part with its colour jittered and its texture offset drawn from ``rng`` (a scene's
+    :class:`_Looks` indoors)."""
     jitter = rng.uniform(0.85, 1.15, 3)
     return _Part(
         shape=shape,
@@ -433,33 +455,34 @@ def _legs(width: float, depth: float, height: float, colour: tuple) -> list[_Loc
     ]
 
 
-def _indoor_object(rng: np.random.Generator, kind: str) -> list[_LocalPart]:
-    """The local parts of one piece of furniture, sizes drawn from ``rng``."""
-    u = rng.uniform
+def _indoor_object(rng: np.random.Generator, looks: _Looks, kind: str) -> list[_LocalPart]:
+    """The local parts of one piece of furniture, sizes drawn from ``rng``, colours and texture
+    scales from ``looks``."""
+    u, look = rng.uniform, looks.uniform
     wood = (0.55, 0.37, 0.22)
     if kind == "table":
         w, d, h = u(1.0, 1.8), u(0.6, 1.0), u(0.70, 0.78)
-        return [(_BOX, (0, 0, h - 0.025), (w, d, 0.05), wood, _STRIPES, u(0.02, 0.05), 0.25,
+        return [(_BOX, (0, 0, h - 0.025), (w, d, 0.05), wood, _STRIPES, look(0.02, 0.05), 0.25,
                  (0, 1, 0))] + _legs(w, d, h - 0.05, wood)
     if kind == "chair":
         s = u(0.40, 0.50)
-        c = tuple(rng.uniform(0.2, 0.8, 3))
+        c = tuple(look(0.2, 0.8, 3))
         return [
             (_BOX, (0, 0, 0.45), (s, s, 0.05), c, _NOISE, 0.04, 0.3, (1, 0, 0)),
             (_BOX, (0, -s / 2 + 0.025, 0.7), (s, 0.05, 0.45), c, _NOISE, 0.04, 0.3, (1, 0, 0)),
         ] + _legs(s, s, 0.425, (0.25, 0.25, 0.27))
     if kind == "cabinet":
         w, d, h = u(0.6, 1.2), u(0.4, 0.6), u(0.8, 2.0)
-        c = wood if rng.random() < 0.5 else (0.85, 0.85, 0.8)
-        return [(_BOX, (0, 0, h / 2), (w, d, h), c, _CHECKER, u(0.3, 0.5), 0.15, (0, 0, 1))]
+        c = wood if looks.random() < 0.5 else (0.85, 0.85, 0.8)
+        return [(_BOX, (0, 0, h / 2), (w, d, h), c, _CHECKER, look(0.3, 0.5), 0.15, (0, 0, 1))]
     if kind == "bookshelf":
         w, h = u(0.8, 1.4), u(1.6, 2.1)
-        return [(_BOX, (0, 0, h / 2), (w, 0.35, h), (0.4, 0.26, 0.16), _STRIPES, u(0.3, 0.4),
+        return [(_BOX, (0, 0, h / 2), (w, 0.35, h), (0.4, 0.26, 0.16), _STRIPES, look(0.3, 0.4),
                  0.5, (0, 0, 1))]
     if kind == "sofa":
         w, d = u(1.6, 2.2), u(0.8, 0.95)
-        c = tuple(rng.uniform(0.15, 0.75, 3))
-        fabric = (c, _NOISE, u(0.05, 0.15), 0.35, (1, 0, 0))
+        c = tuple(look(0.15, 0.75, 3))
+        fabric = (c, _NOISE, look(0.05, 0.15), 0.35, (1, 0, 0))
         return [
             (_BOX, (0, 0, 0.22), (w, d, 0.44), *fabric),
             (_BOX, (0, -d / 2 + 0.1, 0.64), (w, 0.2, 0.4), *fabric),
@@ -476,7 +499,7 @@ def _indoor_object(rng: np.random.Generator, kind: str) -> list[_LocalPart]:
         ]
     if kind == "ball":
         r = u(0.1, 0.3)
-        c = tuple(rng.uniform(0.1, 0.95, 3))
+        c = tuple(look(0.1, 0.95, 3))
         return [(_SPHERE, (0, 0, r), (2 * r,) * 3, c, _CHECKER, r * 0.7, 0.5, (1, 0, 0))]
     if kind == "plant":
         r, h, rf = u(0.15, 0.25), u(0.3, 0.45), u(0.3, 0.45)
@@ -510,30 +533,30 @@ class _Room:
         return bool(np.all(gap > clearance))
 
 
-def _indoor_scene(rng: np.random.Generator) -> tuple[_Scene, _Room]:
+def _indoor_scene(rng: np.random.Generator, looks: _Looks) -> tuple[_Scene, _Room]:
     Lx, Ly, Hr = rng.uniform(4.6, 5.4), rng.uniform(3.6, 4.4), rng.uniform(2.5, 2.8)
-    wall_colour = tuple(rng.uniform(0.6, 0.95, 3))
+    wall_colour = tuple(looks.uniform(0.6, 0.95, 3))
     th = 0.1  # walls are slabs outside the interior, whose faces lie exactly on its bounds
     parts = [
-        _part(rng, _BOX, (Lx / 2, Ly / 2, -th / 2), (Lx + 2 * th, Ly + 2 * th, th), "floor",
-              (0.6, 0.45, 0.3), _STRIPES if rng.random() < 0.5 else _CHECKER,
-              rng.uniform(0.15, 0.5), 0.3, tex_axis=(1, 0, 0)),
-        _part(rng, _BOX, (Lx / 2, Ly / 2, Hr + th / 2), (Lx + 2 * th, Ly + 2 * th, th),
+        _part(looks, _BOX, (Lx / 2, Ly / 2, -th / 2), (Lx + 2 * th, Ly + 2 * th, th), "floor",
+              (0.6, 0.45, 0.3), _STRIPES if looks.random() < 0.5 else _CHECKER,
+              looks.uniform(0.15, 0.5), 0.3, tex_axis=(1, 0, 0)),
+        _part(looks, _BOX, (Lx / 2, Ly / 2, Hr + th / 2), (Lx + 2 * th, Ly + 2 * th, th),
               "ceiling", (0.92, 0.92, 0.9), _NOISE, 0.5, 0.1),
     ]
-    wall_tex = _STRIPES if rng.random() < 0.5 else _NOISE
-    wall_scale = rng.uniform(0.08, 0.3)
+    wall_tex = _STRIPES if looks.random() < 0.5 else _NOISE
+    wall_scale = looks.uniform(0.08, 0.3)
     for centre, size in (
         ((Lx / 2, -th / 2, Hr / 2), (Lx, th, Hr)),
         ((Lx / 2, Ly + th / 2, Hr / 2), (Lx, th, Hr)),
         ((-th / 2, Ly / 2, Hr / 2), (th, Ly + 2 * th, Hr)),
         ((Lx + th / 2, Ly / 2, Hr / 2), (th, Ly + 2 * th, Hr)),
     ):
-        parts.append(_part(rng, _BOX, centre, size, "wall", wall_colour, wall_tex, wall_scale,
+        parts.append(_part(looks, _BOX, centre, size, "wall", wall_colour, wall_tex, wall_scale,
                            0.2, tex_axis=(1, 1, 0)))
 
     kinds = rng.choice(_INDOOR_POOL, size=int(rng.integers(6, 11)), replace=False)
-    objects = [(str(k), _indoor_object(rng, str(k))) for k in kinds]
+    objects = [(str(k), _indoor_object(rng, looks, str(k))) for k in kinds]
     # Big objects first so they still find room.
     objects.sort(key=lambda o: -float(np.prod(_footprint(o[1]))))
     circles: list[tuple[float, float, float]] = []
@@ -573,7 +596,7 @@ def _indoor_scene(rng: np.random.Generator) -> tuple[_Scene, _Room]:
         Rz = rotation_about([0.0, 0.0, 1.0], float(yaw[k]))
         origin = np.array([xy[k, 0], xy[k, 1], 0.0])
         for shape, centre, size, colour, tex, scale, contrast, axis in local:
-            parts.append(_part(rng, shape, origin + Rz @ np.asarray(centre, float), size, kind,
+            parts.append(_part(looks, shape, origin + Rz @ np.asarray(centre, float), size, kind,
                                colour, tex, scale, contrast, yaw=float(yaw[k]), tex_axis=axis))
 
     lamp = np.array([rng.uniform(0.3, 0.7) * Lx, rng.uniform(0.3, 0.7) * Ly, Hr - 0.05])
@@ -772,6 +795,7 @@ def make_pair(
     overlap: tuple[float, float] = (0.3, 0.8),
     image_size: tuple[int, int] | None = None,
     depth_camera_image: bool = False,
+    appearance_seed: int | None = None,
 ) -> Pair:
     """One synthetic image-to-point-cloud pair.
 
@@ -793,6 +817,10 @@ def make_pair(
     ``depth_camera_image=True`` also shades the RGB image the depth camera would have seen,
     ``(H_d, W_d, 3) uint8`` in ``pair.meta["depth_camera_image"]`` (a diagnostic no real
     cloud has: :mod:`freereg_lib.micro.diagnose`); the pair is otherwise the same.
+
+    ``appearance_seed`` (indoor only) draws every colour, texture and texture scale from a
+    generator of its own: the same room, poses and cloud, shaded in another colouring from the
+    world's prior (a diagnostic of how much of an image its depth map cannot tell).
     """
     if kind not in KINDS:
         raise ValueError(f"unknown synthetic kind {kind!r}; expected one of {KINDS}")
@@ -804,9 +832,13 @@ def make_pair(
     f = 525.0 * W / 640 if kind == "indoor" else 721.5377 * W / 1242
     K = intrinsics(f, f, (W - 1) / 2, (H - 1) / 2)
     rng = np.random.default_rng(seed)
+    if appearance_seed is not None and kind != "indoor":
+        raise ValueError(f"appearance_seed: only an indoor scene's appearance can be drawn apart from its "
+                         f"geometry, not {kind!r}")
 
     if kind == "indoor":
-        scene, room = _indoor_scene(rng)
+        redraw = None if appearance_seed is None else np.random.default_rng(appearance_seed)
+        scene, room = _indoor_scene(rng, _Looks(rng, redraw))
         sample_camera = functools.partial(_indoor_camera, room=room)
         sample_sensor = functools.partial(_indoor_sensor, room=room)
         depth_view = _same_pose  # the sensor is itself the depth camera

@@ -27,6 +27,14 @@ def _views(n: int = 8, seed: int = 0, hw=(64, 64)) -> dict:
     return {"rgb": np.stack(rgb), "hint": np.stack(hint), "depth": np.zeros((n, 120, 160), np.float32)}
 
 
+@pytest.fixture
+def views_args(tmp_path) -> list[str]:
+    """The arguments every train_diffusion run of these tests shares: :func:`_views` saved as a
+    two-scene views file, and one thread."""
+    np.savez(tmp_path / "views.npz", n_scenes=2, views_per_scene=4, **_views())
+    return ["--views", str(tmp_path / "views.npz"), "--scenes", "2", "--views-per-scene", "4", "--threads", "1"]
+
+
 def _fit(module, loss_fn, steps: int, lr: float) -> list[float]:
     opt = torch.optim.Adam([p for p in module.parameters() if p.requires_grad], lr=lr)
     losses = []
@@ -80,11 +88,8 @@ def test_each_stage_lowers_its_loss_on_a_fixed_batch():
     assert losses[-1] < losses[0], losses
 
 
-def test_a_resumed_stage_ends_where_an_uninterrupted_one_does(tmp_path):
-    views = _views()
-    np.savez(tmp_path / "views.npz", n_scenes=2, views_per_scene=4, **views)
-    common = ["--views", str(tmp_path / "views.npz"), "--scenes", "2", "--views-per-scene", "4",
-              "--stages", "vae", "--batch", "2", "--checkpoint-every", "2", "--threads", "1"]
+def test_a_resumed_stage_ends_where_an_uninterrupted_one_does(tmp_path, views_args):
+    common = views_args + ["--stages", "vae", "--batch", "2", "--checkpoint-every", "2"]
     T.main(common + ["--out", str(tmp_path / "a"), "--steps-vae", "4"])
     T.main(common + ["--out", str(tmp_path / "b"), "--steps-vae", "2"])
     T.main(common + ["--out", str(tmp_path / "b"), "--steps-vae", "4"])  # resumes at step 2
@@ -107,27 +112,21 @@ def test_lr_factor_warms_up_then_holds_or_decays_to_zero():
 
 
 @pytest.mark.parametrize("schedule, last_lr", [("constant", 1e-3), ("cosine", 0.0)])
-def test_a_stage_ends_at_its_schedules_learning_rate(tmp_path, schedule, last_lr):
-    np.savez(tmp_path / "views.npz", n_scenes=2, views_per_scene=4, **_views())
-    T.main(["--views", str(tmp_path / "views.npz"), "--scenes", "2", "--views-per-scene", "4",
-            "--stages", "vae", "--steps-vae", "3", "--batch", "2", "--warmup", "1", "--lr-vae", "1e-3",
-            "--lr-schedule", schedule, "--out", str(tmp_path / "o"), "--threads", "1"])
+def test_a_stage_ends_at_its_schedules_learning_rate(tmp_path, schedule, last_lr, views_args):
+    T.main(views_args + ["--stages", "vae", "--steps-vae", "3", "--batch", "2", "--warmup", "1",
+                         "--lr-vae", "1e-3", "--lr-schedule", schedule, "--out", str(tmp_path / "o")])
     state = torch.load(tmp_path / "o/vae/checkpoint.pt", weights_only=False)
     assert state["optimizer"]["param_groups"][0]["lr"] == pytest.approx(last_lr, abs=1e-12)
 
 
-def test_export_needs_every_stage(tmp_path):
-    np.savez(tmp_path / "views.npz", n_scenes=2, views_per_scene=4, **_views())
+def test_export_needs_every_stage(tmp_path, views_args):
     with pytest.raises(SystemExit, match="all three stages"):
-        T.main(["--views", str(tmp_path / "views.npz"), "--scenes", "2", "--views-per-scene", "4",
-                "--stages", "vae", "--steps-vae", "1", "--batch", "2", "--out", str(tmp_path / "o"),
-                "--export", str(tmp_path / "w"), "--threads", "1"])
+        T.main(views_args + ["--stages", "vae", "--steps-vae", "1", "--batch", "2", "--out", str(tmp_path / "o"),
+                             "--export", str(tmp_path / "w")])
 
 
-def test_init_from_continues_one_stage_and_keeps_the_others(tmp_path):
-    np.savez(tmp_path / "views.npz", n_scenes=2, views_per_scene=4, **_views())
-    common = ["--views", str(tmp_path / "views.npz"), "--scenes", "2", "--views-per-scene", "4",
-              "--batch", "2", "--checkpoint-every", "2", "--threads", "1", "--warmup", "1"]
+def test_init_from_continues_one_stage_and_keeps_the_others(tmp_path, views_args):
+    common = views_args + ["--batch", "2", "--checkpoint-every", "2", "--warmup", "1"]
     T.main(common + ["--out", str(tmp_path / "a"), "--steps-vae", "2", "--steps-unet", "2",
                      "--steps-controlnet", "2", "--export", str(tmp_path / "w")])
     T.main(common + ["--out", str(tmp_path / "b"), "--init-from", str(tmp_path / "w"), "--stages", "controlnet",
@@ -150,10 +149,8 @@ def test_init_from_continues_one_stage_and_keeps_the_others(tmp_path):
     assert any(moved)
 
 
-def test_restart_controlnet_rebuilds_it_from_the_folders_unet(tmp_path):
-    np.savez(tmp_path / "views.npz", n_scenes=2, views_per_scene=4, **_views())
-    common = ["--views", str(tmp_path / "views.npz"), "--scenes", "2", "--views-per-scene", "4",
-              "--batch", "2", "--checkpoint-every", "2", "--threads", "1", "--warmup", "1"]
+def test_restart_controlnet_rebuilds_it_from_the_folders_unet(tmp_path, views_args):
+    common = views_args + ["--batch", "2", "--checkpoint-every", "2", "--warmup", "1"]
     T.main(common + ["--out", str(tmp_path / "a"), "--steps-vae", "1", "--steps-unet", "1",
                      "--steps-controlnet", "2", "--export", str(tmp_path / "w")])
     T.main(common + ["--out", str(tmp_path / "b"), "--init-from", str(tmp_path / "w"), "--stages", "controlnet",
@@ -219,10 +216,8 @@ def test_a_bf16_autocast_unet_step_lowers_the_loss_on_a_fixed_batch():
     assert losses[-1] < 0.8 * losses[0], losses
 
 
-def test_mixed_precision_changes_the_arithmetic_not_the_draws(tmp_path):
-    np.savez(tmp_path / "views.npz", n_scenes=2, views_per_scene=4, **_views())
-    common = ["--views", str(tmp_path / "views.npz"), "--scenes", "2", "--views-per-scene", "4",
-              "--stages", "vae", "--steps-vae", "2", "--batch", "2", "--threads", "1"]
+def test_mixed_precision_changes_the_arithmetic_not_the_draws(tmp_path, views_args):
+    common = views_args + ["--stages", "vae", "--steps-vae", "2", "--batch", "2"]
     T.main(common + ["--out", str(tmp_path / "f32")])
     T.main(common + ["--out", str(tmp_path / "bf16"), "--mixed-precision", "bf16"])
     a = torch.load(tmp_path / "f32/vae/checkpoint.pt", weights_only=False)
@@ -233,10 +228,8 @@ def test_mixed_precision_changes_the_arithmetic_not_the_draws(tmp_path):
     assert all(v.dtype == torch.float32 for v in b["model"].values())  # float32 master weights
 
 
-def test_restart_unet_trains_a_fresh_unet_on_the_folders_vae(tmp_path):
-    np.savez(tmp_path / "views.npz", n_scenes=2, views_per_scene=4, **_views())
-    common = ["--views", str(tmp_path / "views.npz"), "--scenes", "2", "--views-per-scene", "4",
-              "--batch", "2", "--checkpoint-every", "2", "--threads", "1", "--warmup", "1"]
+def test_restart_unet_trains_a_fresh_unet_on_the_folders_vae(tmp_path, views_args):
+    common = views_args + ["--batch", "2", "--checkpoint-every", "2", "--warmup", "1"]
     T.main(common + ["--out", str(tmp_path / "a"), "--steps-vae", "1", "--steps-unet", "2",
                      "--steps-controlnet", "1", "--export", str(tmp_path / "w")])
     T.main(common + ["--out", str(tmp_path / "b"), "--init-from", str(tmp_path / "w"), "--stages", "unet",

@@ -24,6 +24,22 @@ def test_depth_camera_image_leaves_the_pair_as_it_was():
     assert "depth_camera_image" not in plain.meta
 
 
+def test_appearance_seed_recolours_the_same_room_seen_from_the_same_poses():
+    plain = synthetic.make_pair("indoor", seed=3, image_size=SIZE, depth_camera_image=True)
+    a = synthetic.make_pair("indoor", seed=3, image_size=SIZE, depth_camera_image=True, appearance_seed=1)
+    for field in ("points", "T_pc_sensor", "T_cam_pc", "depth_gt", "image_ids", "point_ids", "depth_frame_gt"):
+        np.testing.assert_array_equal(getattr(a, field), getattr(plain, field))
+    assert not np.array_equal(a.image, plain.image)
+    seen = plain.image_ids >= 0
+    assert np.abs(a.image[seen].astype(int) - plain.image[seen]).mean() > 5
+    np.testing.assert_array_equal(
+        synthetic.make_pair("indoor", seed=3, image_size=SIZE, appearance_seed=1).image, a.image)
+    b = synthetic.make_pair("indoor", seed=3, image_size=SIZE, appearance_seed=2)
+    assert not np.array_equal(b.image, a.image)
+    with pytest.raises(ValueError, match="appearance_seed: only an indoor"):
+        synthetic.make_pair("outdoor", seed=3, image_size=(32, 104), appearance_seed=1)
+
+
 @pytest.fixture(scope="module")
 def tiny():
     pytest.importorskip("diffusers")
@@ -80,8 +96,11 @@ def test_depth_side_maps_names_a_pair_without_its_depth_camera_image(tiny):
 
     pair = synthetic.make_pair("indoor", seed=3, image_size=SIZE)
     view = pipeline.depth_view(pair, FreeRegConfig())
-    with pytest.raises(ValueError, match="depth_camera_image=True"):
+    with pytest.raises(ValueError, match="with_depth_camera_image"):
         diagnose.depth_side_maps(pair, view, view, tiny, (0, 4, 6))
+    plain_extra = synthetic.make_pair("indoor", seed=3, image_size=SIZE, depth_camera_image=True)
+    with pytest.raises(ValueError, match="re-coloured"):  # the true image alone is not enough
+        diagnose.depth_side_maps(plain_extra, view, view, tiny, (0, 4, 6))
 
 
 def test_the_frame_hint_variant_changes_only_the_hint(tiny):
@@ -90,7 +109,7 @@ def test_the_frame_hint_variant_changes_only_the_hint(tiny):
 
     cfg = FreeRegConfig()
     # At full size (480 x 640) the 60,000 points fill a fifth of the depth camera's pixels.
-    pair = synthetic.make_pair("indoor", seed=3, depth_camera_image=True)
+    pair = diagnose.render_with_depth_camera_images("indoor", 3)
     view = pipeline.depth_view(pair, cfg)
     frame = diagnose.frame_view(pair, cfg)
     assert (frame.raw > 0).mean() > (view.raw > 0).mean()
@@ -103,6 +122,20 @@ def test_the_frame_hint_variant_changes_only_the_hint(tiny):
     pair.depth_frame_gt = None
     with pytest.raises(ValueError, match="depth_frame_gt"):
         diagnose.frame_view(pair, cfg)
+
+
+def test_the_recoloured_variant_is_the_true_image_pass_on_its_own_image(tiny):
+    from freereg_lib import pipeline
+    from freereg_lib.micro import diagnose
+
+    pair = diagnose.render_with_depth_camera_images("indoor", 3, image_size=SIZE)
+    view = pipeline.depth_view(pair, FreeRegConfig())
+    maps = diagnose.depth_side_maps(pair, view, view, tiny, (0, 4))[1]
+    assert not np.allclose(maps["appearance_redrawn"][0], maps["generation_oracle"][0])
+    pair.meta["depth_camera_image_redrawn"] = pair.meta["depth_camera_image"]
+    same = diagnose.depth_side_maps(pair, view, view, tiny, (0, 4))[1]
+    for k in (0, 4):  # the same image, hint and forward noise: the same maps
+        np.testing.assert_array_equal(same["appearance_redrawn"][k], same["generation_oracle"][k])
 
 
 def test_the_first_variant_is_the_pipelines_freereg_d():
@@ -130,11 +163,16 @@ def test_card_lists_the_decomposition_as_run(tmp_path):
     run = {**run, "noise_seed": 2, "hint_from_frame": {"IR": 9.0, "IR_ci": [6.0, 12.5]},
            "p_freereg_d_vs_hint_from_frame": 0.25}
     (tmp_path / "diagnose_100pairs_noise2.json").write_text(json.dumps(run))
+    run = {**run, "noise_seed": 3, "appearance_redrawn": {"IR": 20.0, "IR_ci": [16.0, 24.5]},
+           "p_freereg_d_vs_appearance_redrawn": 0.002, "p_appearance_redrawn_vs_generation_oracle": 0.5}
+    (tmp_path / "diagnose_100pairs_noise3.json").write_text(json.dumps(run))
     rows = [line for line in card._diagnoses(tmp_path) if line.startswith("| 100")]
-    assert rows == ["| 100 (2026) | default | committed | 8.5 [5.8, 11.7] | - | 27.0 [22.3, 32.2] | 36.3 [31.2, 41.8] "
-                    "| - | < 0.0001 | = 0.0123 |",
-                    "| 100 (2026) | 2 | committed | 8.5 [5.8, 11.7] | 9.0 [6.0, 12.5] | 27.0 [22.3, 32.2] | "
-                    "36.3 [31.2, 41.8] | = 0.2500 | < 0.0001 | = 0.0123 |"]
+    assert rows == ["| 100 (2026) | default | committed | 8.5 [5.8, 11.7] | - | - | 27.0 [22.3, 32.2] | "
+                    "36.3 [31.2, 41.8] | - | < 0.0001 | - | - | = 0.0123 |",
+                    "| 100 (2026) | 2 | committed | 8.5 [5.8, 11.7] | 9.0 [6.0, 12.5] | - | 27.0 [22.3, 32.2] | "
+                    "36.3 [31.2, 41.8] | = 0.2500 | < 0.0001 | - | - | = 0.0123 |",
+                    "| 100 (2026) | 3 | committed | 8.5 [5.8, 11.7] | 9.0 [6.0, 12.5] | 20.0 [16.0, 24.5] | "
+                    "27.0 [22.3, 32.2] | 36.3 [31.2, 41.8] | = 0.2500 | < 0.0001 | = 0.0020 | = 0.5000 | = 0.0123 |"]
 
 
 def test_with_depth_camera_image_renders_the_same_pair_again():
@@ -145,6 +183,14 @@ def test_with_depth_camera_image_renders_the_same_pair_again():
     np.testing.assert_array_equal(again.points, pair.points)
     np.testing.assert_array_equal(again.image, pair.image)
     assert again.meta["depth_camera_image"].shape == SIZE + (3,)
+    redrawn = again.meta["depth_camera_image_redrawn"]
+    assert redrawn.shape == SIZE + (3,) and not np.array_equal(redrawn, again.meta["depth_camera_image"])
+    np.testing.assert_array_equal(diagnose.recoloured(pair).image, synthetic.make_pair(
+        "indoor", seed=5, image_size=SIZE, overlap=(0.2, 0.9), appearance_seed=diagnose.appearance_seed(5)).image)
+    outdoor = synthetic.make_pair("outdoor", seed=1, image_size=(32, 104))
+    for render in (diagnose.with_depth_camera_image, diagnose.recoloured):
+        with pytest.raises(ValueError, match="outdoor pair has no colouring"):
+            render(outdoor)
     pair.meta = {"dataset": "3dmatch"}
     with pytest.raises(ValueError, match="only a synthetic pair"):
         diagnose.with_depth_camera_image(pair)

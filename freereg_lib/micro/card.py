@@ -120,13 +120,17 @@ def _diagnoses(folder: Path) -> list[str]:
         "pipeline (ControlNet-guided DDIM from the depth hint), (1b) the same with the hint made from the",
         "depth camera's full rendered frame instead of the sampled cloud's projection, (2) the same",
         "ControlNet + UNet feature pass on the forward-noised latent of the *true* image the depth camera",
-        "would have seen, (3) the image side's own path (UNet alone) on that true image",
-        "(`python -m freereg_lib.micro.diagnose`; '-': a run made before (1b) existed):",
+        "would have seen, (2a) the same on that true image of the room re-coloured (every colour and",
+        "texture drawn afresh from the world's prior: what a generator that knows the geometry exactly,",
+        "but not the colours no depth map holds, could give), (3) the image side's own path (UNet alone)",
+        "on the true image (`python -m freereg_lib.micro.diagnose`; '-': a run made before the column",
+        "existed):",
         "",
         "| pairs (seed) | noise seed | weights | (1) FreeReg-D IR % | (1b) hint from the full frame % | "
-        "(2) true image, ControlNet pass % | (3) true image, image path % | p (1) vs (1b) | p (1) vs (2) | "
+        "(2a) true image re-coloured, ControlNet pass % | (2) true image, ControlNet pass % | "
+        "(3) true image, image path % | p (1) vs (1b) | p (1) vs (2) | p (1) vs (2a) | p (2a) vs (2) | "
         "p (2) vs (3) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in runs:
         cells = [f"{r[v]['IR']:.1f} [{r[v]['IR_ci'][0]:.1f}, {r[v]['IR_ci'][1]:.1f}]" if v in r else "-"

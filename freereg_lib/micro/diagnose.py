@@ -14,16 +14,22 @@ maps of the depth side:
 - ``hint_from_frame``: the same, with the hint made from the depth camera's full rendered
   frame (``Pair.depth_frame_gt``, as 3DMatch's sensor depth is used) instead of the
   60,000-point cloud projected and densified: what the sampled cloud's holes cost the hint;
-- ``generation_oracle``: the same feature pass (ControlNet with the same hint + UNet at t_hat)
-  on the forward-noised latent of the *true* depth-camera image, as if the sampling had
-  generated exactly the real image;
+- ``appearance_redrawn``: the same feature pass (ControlNet with the same hint + UNet at t_hat)
+  on the forward-noised latent of the true depth-camera image of the same room in another
+  colouring: every colour, texture and texture scale drawn afresh from the world's prior
+  (``make_pair(..., appearance_seed=...)``), the geometry and lighting kept. It is what an
+  ideal depth-conditioned generator could give, one that knows the geometry exactly and
+  every object's class from its shape but, as no depth map tells it, not its colours;
+- ``generation_oracle``: the same feature pass on the *true* depth-camera image, as if the
+  sampling had generated exactly the real image;
 - ``same_modality``: the image side's own path (UNet alone) on that true image, i.e.
   image-to-image matching across the two viewpoints, with no modality gap at all.
 
 ``same_modality`` bounds what the UNet's features can match across views; the distance from
 ``generation_oracle`` down to ``freereg_d`` is what generating an image from depth costs (the
-paper's Fig. 2-I point: a depth map admits many images). Both true-image passes draw their
-own forward noise, not the image side's.
+paper's Fig. 2-I point: a depth map admits many images), and ``appearance_redrawn`` splits it
+into what no generator could recover (the colours) and what the micro ControlNet's samples
+lose beyond that. The true-image passes draw their own forward noise, not the image side's.
 """
 from __future__ import annotations
 
@@ -35,41 +41,81 @@ import numpy as np
 
 from .evaluate import bootstrap_ci, paired_permutation_p
 
-VARIANTS = ("freereg_d", "hint_from_frame", "generation_oracle", "same_modality")
-# The paired tests reported: the hint's cost, the generation's, the ControlNet pass's.
+VARIANTS = ("freereg_d", "hint_from_frame", "appearance_redrawn", "generation_oracle", "same_modality")
+# The paired tests reported: the hint's cost, the generation's (split at the colours no depth
+# map holds), the ControlNet pass's.
 COMPARISONS = (("freereg_d", "hint_from_frame"), ("freereg_d", "generation_oracle"),
+               ("freereg_d", "appearance_redrawn"), ("appearance_redrawn", "generation_oracle"),
                ("generation_oracle", "same_modality"))
 
 
-def with_depth_camera_image(pair):
-    """The synthetic ``pair`` made again with its depth camera's true image
-    (``make_pair(..., depth_camera_image=True)``: the same pair otherwise)."""
+def appearance_seed(seed: int | tuple[int, ...]) -> tuple[int, ...]:
+    """The seed of the colouring :func:`render_with_depth_camera_images` redraws for the pair of
+    ``seed``: one per pair, never the pair's own stream."""
+    return (*np.atleast_1d(seed).tolist(), 0xC010)
+
+
+def render_with_depth_camera_images(kind: str, seed, overlap=(0.3, 0.8), image_size=None):
+    """``synthetic.make_pair(kind, seed, overlap, image_size, depth_camera_image=True)`` with,
+    in ``meta["depth_camera_image_redrawn"]``, the depth camera's image of the same room in the
+    colouring of :func:`appearance_seed` (``make_pair(..., appearance_seed=...)``)."""
     from .. import synthetic
 
+    pair = synthetic.make_pair(kind, seed=seed, overlap=overlap, image_size=image_size, depth_camera_image=True)
+    redrawn = synthetic.make_pair(kind, seed=seed, overlap=overlap, image_size=image_size,
+                                  depth_camera_image=True, appearance_seed=appearance_seed(seed))
+    pair.meta["depth_camera_image_redrawn"] = redrawn.meta["depth_camera_image"]
+    return pair
+
+
+def _synthetic_indoor_seed(pair):
+    """``pair``'s synthetic seed, or a ValueError naming what a real or outdoor pair lacks."""
     meta = pair.meta
     if meta.get("dataset") != "synthetic" or "seed" not in meta:
         raise ValueError(f"pair {pair.name}: only a synthetic pair can be rendered again with its depth camera's "
-                         "image; a real cloud has none")
-    return synthetic.make_pair(meta["kind"], seed=meta["seed"], overlap=meta["overlap_range"],
-                               image_size=pair.image_size, depth_camera_image=True)
+                         "image or in another colouring; a real cloud has neither")
+    if meta["kind"] != "indoor":
+        raise ValueError(f"pair {pair.name}: only an indoor room's colours are drawn apart from its geometry; "
+                         f"a {meta['kind']} pair has no colouring apart from its geometry")
+    return meta["seed"]
+
+
+def with_depth_camera_image(pair):
+    """The synthetic indoor ``pair`` made again with its depth camera's true image and that
+    image re-coloured (:func:`render_with_depth_camera_images`: the same pair otherwise)."""
+    seed = _synthetic_indoor_seed(pair)
+    return render_with_depth_camera_images("indoor", seed, pair.meta["overlap_range"], pair.image_size)
+
+
+def recoloured(pair):
+    """The synthetic indoor ``pair`` made again in the colouring of :func:`appearance_seed`:
+    the same room, poses and cloud (notebook 01's Fig. 2-I shows its image beside the photo)."""
+    from .. import synthetic
+
+    seed = _synthetic_indoor_seed(pair)
+    return synthetic.make_pair("indoor", seed=seed, overlap=pair.meta["overlap_range"], image_size=pair.image_size,
+                               appearance_seed=appearance_seed(seed))
 
 
 def depth_side_maps(pair, view, frame_view, backend, layers) -> tuple[dict, dict[str, dict]]:
     """The image side's decoder maps and the depth side's under each of :data:`VARIANTS`,
     ``{layer: (C, h, w) float32}``; ``view`` is the pipeline's depth view of ``pair``,
     ``frame_view`` the one made from its full depth frame (:func:`frame_view`);
-    ``pair.meta["depth_camera_image"]`` must hold the true depth-camera image."""
+    ``pair.meta`` must hold the true depth-camera image and its re-coloured version
+    (:func:`with_depth_camera_image`)."""
     from .. import pipeline
 
     image_b = pair.meta.get("depth_camera_image")
-    if image_b is None:
-        raise ValueError(f"pair {pair.name} holds no depth-camera image; make it with "
-                         "synthetic.make_pair(..., depth_camera_image=True)")
+    redrawn = pair.meta.get("depth_camera_image_redrawn")
+    if image_b is None or redrawn is None:
+        raise ValueError(f"pair {pair.name} holds no depth-camera image and its re-coloured version; make it "
+                         "with freereg_lib.micro.diagnose.with_depth_camera_image")
     D = backend.diffusion
     maps_image, maps_depth = pipeline.diffusion_maps_batch([pair], [view], backend, layers)[0]
     return maps_image, {
         "freereg_d": maps_depth,
         "hint_from_frame": D.depth_batch([frame_view.dense], layers)[0],
+        "appearance_redrawn": D.depth_pass_on_images([redrawn], [view.dense], layers)[0],
         "generation_oracle": D.depth_pass_on_images([image_b], [view.dense], layers)[0],
         "same_modality": D.rgb_batch([image_b], layers, noise_tag="depth-camera-image")[0],
     }
@@ -111,7 +157,6 @@ def diagnose(n_pairs: int = 30, seed: int = 2026, weights_dir=None, random_weigh
     the paired permutation p between neighbouring variants."""
     from tqdm.auto import tqdm
 
-    from .. import synthetic
     from ..backends import get_backend
     from ..config import FreeRegConfig
 
@@ -120,7 +165,7 @@ def diagnose(n_pairs: int = 30, seed: int = 2026, weights_dir=None, random_weigh
     seeds = [seed * 1_000_003 + k for k in range(n_pairs)]
     rows = []
     for s in tqdm(seeds, desc="diagnose", disable=not progress):
-        pair = synthetic.make_pair("indoor", seed=s, depth_camera_image=True)
+        pair = render_with_depth_camera_images("indoor", s)
         rows.append(pair_inlier_ratios(pair, backend, cfg))
     result = {"n_pairs": n_pairs, "seed": seed, "noise_seed": noise_seed,
               "weights": "random" if random_weights else str(weights_dir or "committed")}
@@ -136,6 +181,7 @@ def diagnose(n_pairs: int = 30, seed: int = 2026, weights_dir=None, random_weigh
 LABELS = {
     "freereg_d": "FreeReg-D (depth side generated from the depth hint)",
     "hint_from_frame": "the same, the hint made from the full depth frame",
+    "appearance_redrawn": "the same feature pass on the true image re-coloured",
     "generation_oracle": "the same feature pass on the true depth-camera image",
     "same_modality": "image side's path on the true depth-camera image",
 }
@@ -144,6 +190,7 @@ LABELS = {
 SHORT_LABELS = {
     "freereg_d": "generated (FreeReg-D)",
     "hint_from_frame": "generated, hint from the full frame",
+    "appearance_redrawn": "true image re-coloured, ControlNet pass",
     "generation_oracle": "true image, ControlNet pass",
     "same_modality": "true image, image path",
 }
@@ -158,11 +205,13 @@ def report(result: dict) -> str:
         lines.append(f"  {LABELS[name]:55s} IR {r['IR']:5.1f} % [{r['IR_ci'][0]:.1f}, {r['IR_ci'][1]:.1f}]")
     hint = result["hint_from_frame"]["IR"] - result["freereg_d"]["IR"]
     gen = result["generation_oracle"]["IR"] - result["freereg_d"]["IR"]
+    colour = result["generation_oracle"]["IR"] - result["appearance_redrawn"]["IR"]
     cn = result["same_modality"]["IR"] - result["generation_oracle"]["IR"]
     lines.append(f"  the cloud's projected hint instead of the full frame's: {-hint:+.1f} IR points "
                  f"(p = {result['p_freereg_d_vs_hint_from_frame']:.4f}); "
                  f"the generated image instead of the true one: {-gen:+.1f} IR points "
-                 f"(p = {result['p_freereg_d_vs_generation_oracle']:.4f}); the ControlNet feature pass instead of "
+                 f"(p = {result['p_freereg_d_vs_generation_oracle']:.4f}), of which the colours no depth map "
+                 f"holds: {-colour:+.1f} (p = {result['p_appearance_redrawn_vs_generation_oracle']:.4f}); the ControlNet feature pass instead of "
                  f"the image side's UNet pass on the true image: {-cn:+.1f} (p = "
                  f"{result['p_generation_oracle_vs_same_modality']:.4f})")
     return "\n".join(lines)
