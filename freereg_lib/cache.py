@@ -37,7 +37,7 @@ import numpy as np
 from .backends.base import Backend, _hints, check_layers
 
 # The config fields that change a backend's outputs (see FreeRegConfig).
-FEATURE_FIELDS = ("outdoor", "resize_hw", "t_hat", "ddim_steps", "ddim_eta", "guidance_w",
+FEATURE_FIELDS = ("outdoor", "resize_hw", "t_hat", "ddim_steps", "ddim_eta", "guidance_w", "controlnet_scale",
                   "prompt", "negative_prompt", "seed", "sd_unet_variant", "controlnet", "dtype")
 
 

@@ -33,6 +33,7 @@ class FreeRegConfig:
     ddim_steps: int = 20
     ddim_eta: float = 1.0
     guidance_w: float = 4.0  # eps = (w + 1) U(c) - w U(c_u)
+    controlnet_scale: float = 1.0  # weight of the ControlNet's residuals (diffusers' conditioning_scale); official 1
     batched_guidance: bool = False  # both guidance branches in one UNet call (a GPU speed-up)
     pair_batch: int = 1  # pairs whose diffusion features run as one batch (a GPU speed-up)
     prompt: str = INDOOR_PROMPT

@@ -400,3 +400,18 @@ def test_batched_guidance_same_features_half_the_calls(depth):
     assert calls[False] == 9 and calls[True] == 5  # 4 guided steps x 2 (or x 1 batched) + 1
     for a, b in zip(results[False], results[True]):
         np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-4)
+
+
+def test_controlnet_scale_weights_the_hint_and_zero_silences_it(depth):
+    other = np.flipud(depth).copy()
+    feats = {}
+    for scale in (1.0, 0.0, 2.0):  # 1: the official weight
+        cfg = FreeRegConfig().override(ddim_steps=5, controlnet_scale=scale)
+        be = get_backend("tiny", cfg, device="cpu", resize_hw=(64, 128))
+        feats[scale] = [be.diffusion_depth(d) for d in (depth, other)]
+    official, silent, doubled = feats[1.0], feats[0.0], feats[2.0]
+    assert not np.allclose(official[0][0], official[1][0])  # the hint steers the features
+    for a, b in zip(*silent):  # scale 0: the ControlNet adds nothing, so any hint gives the same features
+        np.testing.assert_array_equal(a, b)
+    assert not np.allclose(doubled[0][0], official[0][0])
+    assert not np.allclose(silent[0][0], official[0][0])

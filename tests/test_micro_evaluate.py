@@ -58,7 +58,9 @@ def test_the_command_line_records_only_the_config_fields_it_was_given(monkeypatc
     monkeypatch.setattr(E, "evaluate", fake_evaluate)
     E.main(["--pairs", "2", "--trained-only", "--ddim-eta", "0", "--ddim-steps", "50"])
     E.main(["--pairs", "2", "--trained-only"])
+    E.main(["--pairs", "2", "--trained-only", "--controlnet-scale", "1.5"])
     assert {k: v for k, v in seen[0].items() if k in E.SWEPT_FIELDS} == {"ddim_eta": 0.0, "ddim_steps": 50}
+    assert {k: v for k, v in seen[2].items() if k in E.SWEPT_FIELDS} == {"controlnet_scale": 1.5}
     assert not any(k in E.SWEPT_FIELDS for k in seen[1])  # a default run records no change
     out = capsys.readouterr().out
     assert "{'ddim_steps': 50, 'ddim_eta': 0.0}" in out and "default config" in out

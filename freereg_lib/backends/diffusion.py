@@ -303,7 +303,7 @@ class DiffusionFeatures:
         """Noise prediction of ControlNet + UNet (one ControlNet call, one UNet call)."""
         down, mid = self.controlnet(
             z, t, encoder_hidden_states=text_emb, controlnet_cond=hint,
-            conditioning_scale=1.0, return_dict=False,
+            conditioning_scale=self.cfg.controlnet_scale, return_dict=False,
         )
         return self.unet(
             z, t, encoder_hidden_states=text_emb,
@@ -365,7 +365,7 @@ class DiffusionFeatures:
         with torch.inference_mode():
             zt, t = self._noised_latents(images, noise_tag)
             down, mid = self.controlnet(zt, t, encoder_hidden_states=cond, controlnet_cond=hint,
-                                        conditioning_scale=1.0, return_dict=False)
+                                        conditioning_scale=self.cfg.controlnet_scale, return_dict=False)
             return run_tapped(self.unet, zt, t, layers=layers, encoder_hidden_states=cond,
                               down_block_additional_residuals=down, mid_block_additional_residual=mid,
                               return_dict=False)
@@ -418,7 +418,7 @@ class DiffusionFeatures:
             tt = self._timestep(feature_timestep(cfg.t_hat, cfg.ddim_steps))
             down, mid = self.controlnet(
                 z, tt, encoder_hidden_states=cond, controlnet_cond=hint,
-                conditioning_scale=1.0, return_dict=False,
+                conditioning_scale=self.cfg.controlnet_scale, return_dict=False,
             )
             return run_tapped(
                 self.unet, z, tt, layers=layers, encoder_hidden_states=cond,

@@ -141,13 +141,14 @@ def _diagnoses(folder: Path) -> list[str]:
     return lines + [""]
 
 
-SWEEP_FOLDERS = ("t_hat", "guidance", "sampler")
+SWEEP_FOLDERS = ("t_hat", "guidance", "sampler", "controlnet_scale")
 
 
 def _sweeps(folder: Path) -> list[str]:
-    """Rows of the trained-only sweeps (``t_hat/``, ``guidance/``, ``sampler/``: ``evaluate
-    --trained-only`` with one config field changed), each beside the default-config run of the
-    same pairs, pair seed and noise seed (``eval.json``, ``eval_*.json``) with a paired p."""
+    """Rows of the trained-only sweeps (``t_hat/``, ``guidance/``, ``sampler/``,
+    ``controlnet_scale/``: ``evaluate --trained-only`` with one config field changed), each
+    beside the default-config run of the same pairs, pair seed and noise seed (``eval.json``,
+    ``eval_*.json``) with a paired p."""
     from .evaluate import paired_permutation_p
 
     baselines = {}
@@ -176,8 +177,9 @@ def _sweeps(folder: Path) -> list[str]:
         "### Sweeps of one setting",
         "",
         "The trained weights with one config field changed (`evaluate --trained-only --t-hat T`, `--guidance-w W`,",
-        "`--ddim-eta E`, `--ddim-steps N`), against the default config (the official t_hat 150, w 4, DDIM eta 1,",
-        "20 steps) on the same pairs and noise seed; p: paired permutation test on the per-pair IR:",
+        "`--ddim-eta E`, `--ddim-steps N`, `--controlnet-scale S`), against the default config (the official",
+        "t_hat 150, w 4, DDIM eta 1, 20 steps, ControlNet scale 1) on the same pairs and noise seed; p: paired",
+        "permutation test on the per-pair IR:",
         "",
         "| setting | pairs (seed) | noise seed | IR % | FMR % | RR % | default config's IR % | p |",
         "|---|---|---|---|---|---|---|---|",

@@ -1,7 +1,8 @@
 """Held-out quality of the micro diffusion models: trained weights against random ones.
 
     python -m freereg_lib.micro.evaluate [--pairs 30] [--seed 2026] [--weights DIR]
-        [--guidance-w 4.0] [--t-hat 150] [--trained-only] [--random-from eval.json] [--out eval.json]
+        [--guidance-w 4.0] [--t-hat 150] [--controlnet-scale 1.0] [--trained-only]
+        [--random-from eval.json] [--out eval.json]
 
 Runs FreeReg-D (decoder layers 0, 4, 6; PnP-RANSAC) through :func:`freereg_lib.pipeline.run_pairs`
 on synthetic indoor pairs made from integer seeds, which the training rooms (a two-word seed
@@ -125,7 +126,7 @@ def report(result: dict) -> str:
     return "\n".join(lines)
 
 
-SWEPT_FIELDS = ("guidance_w", "t_hat", "ddim_steps", "ddim_eta")
+SWEPT_FIELDS = ("guidance_w", "t_hat", "ddim_steps", "ddim_eta", "controlnet_scale")
 
 
 def config_changes(args: argparse.Namespace) -> dict:
@@ -142,6 +143,8 @@ def main(argv=None) -> int:
     p.add_argument("--t-hat", type=int, default=None)
     p.add_argument("--ddim-steps", type=int, default=None)
     p.add_argument("--ddim-eta", type=float, default=None)
+    p.add_argument("--controlnet-scale", type=float, default=None,
+                   help="the ControlNet residuals' weight (diffusers' conditioning_scale; the official 1)")
     p.add_argument("--noise-seed", type=int, default=None,
                    help="the config's seed (the diffusion features' noise draws); default the config's")
     p.add_argument("--trained-only", action="store_true", help="skip the random-weight baseline (sweeps)")
