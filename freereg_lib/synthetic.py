@@ -533,7 +533,10 @@ class _Room:
         return bool(np.all(gap > clearance))
 
 
-def _indoor_scene(rng: np.random.Generator, looks: _Looks) -> tuple[_Scene, _Room]:
+def _indoor_scene(rng: np.random.Generator, looks: _Looks | None = None) -> tuple[_Scene, _Room]:
+    """A furnished room drawn from ``rng``; its colours and textures from ``looks`` (by default
+    from ``rng`` too, as every pair and training view draws them)."""
+    looks = _Looks(rng) if looks is None else looks
     Lx, Ly, Hr = rng.uniform(4.6, 5.4), rng.uniform(3.6, 4.4), rng.uniform(2.5, 2.8)
     wall_colour = tuple(looks.uniform(0.6, 0.95, 3))
     th = 0.1  # walls are slabs outside the interior, whose faces lie exactly on its bounds
