@@ -798,7 +798,7 @@ def make_pair(
     overlap: tuple[float, float] = (0.3, 0.8),
     image_size: tuple[int, int] | None = None,
     depth_camera_image: bool = False,
-    appearance_seed: int | None = None,
+    appearance_seed: int | tuple[int, ...] | None = None,
 ) -> Pair:
     """One synthetic image-to-point-cloud pair.
 
@@ -821,8 +821,8 @@ def make_pair(
     ``(H_d, W_d, 3) uint8`` in ``pair.meta["depth_camera_image"]`` (a diagnostic no real
     cloud has: :mod:`freereg_lib.micro.diagnose`); the pair is otherwise the same.
 
-    ``appearance_seed`` (indoor only) draws every colour, texture and texture scale from a
-    generator of its own: the same room, poses and cloud, shaded in another colouring from the
+    ``appearance_seed`` (indoor only; an integer or, like ``seed``, a tuple of them) draws every
+    colour, texture and texture scale from a generator of its own: the same room, poses and cloud, shaded in another colouring from the
     world's prior (a diagnostic of how much of an image its depth map cannot tell).
     """
     if kind not in KINDS:

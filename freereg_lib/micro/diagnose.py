@@ -211,8 +211,8 @@ def report(result: dict) -> str:
                  f"(p = {result['p_freereg_d_vs_hint_from_frame']:.4f}); "
                  f"the generated image instead of the true one: {-gen:+.1f} IR points "
                  f"(p = {result['p_freereg_d_vs_generation_oracle']:.4f}), of which the colours no depth map "
-                 f"holds: {-colour:+.1f} (p = {result['p_appearance_redrawn_vs_generation_oracle']:.4f}); the ControlNet feature pass instead of "
-                 f"the image side's UNet pass on the true image: {-cn:+.1f} (p = "
+                 f"holds: {-colour:+.1f} (p = {result['p_appearance_redrawn_vs_generation_oracle']:.4f}); "
+                 f"the ControlNet feature pass instead of the image side's UNet pass on the true image: {-cn:+.1f} (p = "
                  f"{result['p_generation_oracle_vs_same_modality']:.4f})")
     return "\n".join(lines)
 
