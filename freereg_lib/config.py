@@ -22,71 +22,99 @@ INDOOR_LADDER = ((5.0, 0.1), (10.0, 0.2), (15.0, 0.3), (20.0, 0.5), (25.0, 0.5))
 KITTI_LADDER = ((3.0, 1.0), (5.0, 2.0), (7.0, 3.0), (10.0, 3.0), (10.0, 4.0))
 
 
+def ranged(default, interval, *, distinct: bool = False):
+    """A field's default with its range, declared beside it (the one place a range is written).
+
+    ``interval`` is written as in mathematics: ``"[0, 1]"``, ``"(0, inf)"``, ``"[1, inf)"``;
+    alternatives are joined by ``|`` (``"0 | [1, inf)"``: exactly 0 or at least 1). For a tuple
+    field it holds for every entry; a tuple of intervals holds entry by entry within each item
+    (``rr_ladder``'s (deg, m) rungs). ``distinct``: one or more entries, none repeated.
+    :func:`range_problem` checks a value against it; ``FreeRegConfig``, the notebooks'
+    parameter check (:mod:`freereg_lib.params`) and the batch grid check all call it.
+    """
+    return field(default=default, metadata={"range": interval, "distinct": distinct})
+
+
 @dataclass(frozen=True)
 class FreeRegConfig:
     """Every knob of the pipeline. Defaults are the paper's indoor (3DMatch) setting."""
 
     outdoor: bool = False
     # Diffusion features.
-    resize_hw: tuple[int, int] = (512, 704)
-    t_hat: int = 150
-    ddim_steps: int = 20
-    ddim_eta: float = 1.0
-    guidance_w: float = 4.0  # eps = (w + 1) U(c) - w U(c_u)
-    controlnet_scale: float = 1.0  # weight of the ControlNet's residuals (diffusers' conditioning_scale); official 1
+    resize_hw: tuple[int, int] = ranged((512, 704), "[64, inf)")  # multiples of 64 (the backends check)
+    t_hat: int = ranged(150, "[0, 999]")  # a timestep of SD's 1000
+    ddim_steps: int = ranged(20, "[1, 1000]")
+    ddim_eta: float = ranged(1.0, "[0, 1]")
+    guidance_w: float = ranged(4.0, "[0, inf)")  # eps = (w + 1) U(c) - w U(c_u)
+    controlnet_scale: float = ranged(1.0, "[0, inf)")  # weight of the ControlNet's residuals (diffusers' conditioning_scale); official 1
     batched_guidance: bool = False  # both guidance branches in one UNet call (a GPU speed-up)
-    pair_batch: int = 1  # pairs whose diffusion features run as one batch (a GPU speed-up)
+    pair_batch: int = ranged(1, "[1, inf)")  # pairs whose diffusion features run as one batch (a GPU speed-up)
     prompt: str = INDOOR_PROMPT
     negative_prompt: str = NEGATIVE_PROMPT
-    layers: tuple[int, ...] = (0, 4, 6)
-    pca_dim: int = 128
+    layers: tuple[int, ...] = ranged((0, 4, 6), "[0, 8]", distinct=True)  # decoder layers 0..8
+    pca_dim: int = ranged(128, "[1, inf)")
     pca_device: str | None = None  # None: float64 NumPy on the host; "cuda": float32 on the GPU
-    seed: int = 0
+    seed: int = ranged(0, "[0, inf)")
     # Model weights and precision of the tiny / real backends (README "Weights", "Faster runs").
     sd_unet_variant: str = "non_ema"  # the official (non-EMA) SD v1.5 UNet; "ema": diffusers' default files
     controlnet: str = "lllyasviel/control_v11f1p_sd15_depth"  # Table 1; or a single-file checkpoint (FreeReg-Ft)
     dtype: str = "float32"  # the official precision; "float16" / "bfloat16": faster on CUDA, other features
     # Depth handling.
     densify: str = "fast"  # "fast" | "multiscale" | "none"
-    depth_min: float = 0.01
-    depth_max: float = 10.0
+    depth_min: float = ranged(0.01, "[0, inf)")  # and below depth_max
+    depth_max: float = ranged(10.0, "(0, inf)")
     # The official 6 x 6 edge filter on the monocular depth map before its back-projection
     # for geometric features (projection.edge_filter); 0 disables. There is none on the cloud.
-    edge_filter_m: float = 0.2
+    edge_filter_m: float = ranged(0.2, "[0, inf)")
+    # The official cfg.proj limits of the clouds handed to the geometric features
+    # (projection.feature_cloud): depth < cloud_far_m and > cloud_near_m, then the mask
+    # (depth_min, depth_max). ScanNet: 10 m although its masks reach 15 m.
+    cloud_far_m: float = ranged(10.0, "(0, inf)")
+    cloud_near_m: float = ranged(0.01, "[0, inf)")
+    # Point cloud -> depth map: "official" = proj_pc2dpt (pixel truncated, z + 1e-5, z > 0.05 m,
+    # no far limit); "round": nearest pixel within (depth_min, depth_max).
+    cloud_projection: str = "official"
+    # fill_in_multiscale's remaining holes: the official 255 m (a KITTI hint reads them "far");
+    # 0 leaves them empty (IP-Basic's own behaviour, "no measurement").
+    multiscale_hole_m: float = ranged(255.0, "[0, inf)")
     # Geometric features.
     geometric: str = "fpfh"  # "fpfh" | "fcgf"
-    voxel_size: float = 0.025  # FCGF's voxel (the paper's)
-    fpfh_voxel: float = 0.05  # FPFH needs coarser voxels than FCGF to be distinctive
-    fpfh_radius_factor: float = 5.0  # FPFH radius = factor * voxel
-    normal_radius_factor: float = 2.0
-    tau_g: float = 0.5  # pixel -> nearest feature point farther than this gets a zero feature
+    voxel_size: float = ranged(0.025, "(0, inf)")  # FCGF's voxel (the paper's)
+    fpfh_voxel: float = ranged(0.05, "(0, inf)")  # FPFH needs coarser voxels than FCGF to be distinctive
+    fpfh_radius_factor: float = ranged(5.0, "(0, inf)")  # FPFH radius = factor * voxel
+    normal_radius_factor: float = ranged(2.0, "(0, inf)")
+    tau_g: float = ranged(0.5, "[0, inf)")  # pixel -> nearest feature point farther than this gets a zero feature
     # Fusion and matching.
-    fusion_w: float = 0.5
-    keypoint_grid: tuple[int, int] = (32, 44)
+    fusion_w: float = ranged(0.5, "[0, 1]")  # 0: FreeReg-G alone, 1: FreeReg-D alone
+    keypoint_grid: tuple[int, int] = ranged((32, 44), "[1, inf)")
     match_device: str = "cpu"  # "cuda[:N]" runs the mutual nearest neighbours on a GPU
     # Solvers.
-    ransac_iters: int = 50_000
-    kabsch_inlier_m: float = 0.2
+    ransac_iters: int = ranged(50_000, "[1, inf)")
+    kabsch_inlier_m: float = ranged(0.2, "(0, inf)")
     kabsch_with_scale: bool = True
-    kabsch_scoring: str = "official"  # Open3D's fitness score; "matches": scored by the matches it explains
-    kabsch_confidence: float = 1.0  # the official call never stops early; < 1 stops early (a speed-up)
-    kabsch_max_scale_ratio: float = 0.0  # > 0 rejects similarities scaling by more (0: the official call)
-    ransac_n: int = 4
-    pnp_reproj_px: float = 10.0
+    kabsch_scoring: str = "official"  # open3d 0.12's score (matches within the inlier distance); "open3d": the installed call
+    kabsch_confidence: float = ranged(1.0, "(0, 1]")  # the official call never stops early; < 1 stops early (a speed-up)
+    kabsch_max_scale_ratio: float = ranged(0.0, "0 | [1, inf)")  # > 0 rejects similarities scaling by more (0: the official call)
+    ransac_n: int = ranged(4, "[3, inf)")  # a similarity needs 3 correspondences
+    pnp_reproj_px: float = ranged(10.0, "(0, inf)")
     pnp_method: str = "iterative"  # the paper's (OpenCV's default); "usac": ~100x faster, coarser poses
-    pnp_workers: int = 1  # threads sharing the PnP-RANSAC iterations (same solver, other samples)
-    min_matches_kabsch: int = 5
-    min_matches_pnp: int = 8
+    pnp_workers: int = ranged(1, "[1, inf)")  # threads sharing the PnP-RANSAC iterations (same solver, other samples)
+    min_matches_kabsch: int = ranged(5, "[0, inf)")
+    min_matches_pnp: int = ranged(8, "[0, inf)")
     # Evaluation.
-    tau_c: float = 0.3
-    fmr_ratio: float = 0.05
-    rr_rot_deg: float = 20.0
-    rr_trans_m: float = 0.5
-    rr_ladder: tuple[tuple[float, float], ...] = INDOOR_LADDER
+    tau_c: float = ranged(0.3, "(0, inf)")
+    fmr_ratio: float = ranged(0.05, "[0, 1]")
+    rr_rot_deg: float = ranged(20.0, "(0, 180]")
+    rr_trans_m: float = ranged(0.5, "(0, inf)")
+    rr_ladder: tuple[tuple[float, float], ...] = ranged(INDOOR_LADDER, ("(0, 180]", "(0, inf)"))  # (deg, m) rungs
+    # A pair with fewer than 3 evaluable matches: "official" scores IR 1, IN 1 (the official
+    # ir_cal returns [0] distances); "zero": IR 0, IN the correct count. Rows say n_evaluable.
+    eval_few_matches: str = "official"
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self):
         _check_types(self)
+        _check_ranges(self)
 
     def override(self, **changes) -> "FreeRegConfig":
         """A copy with ``changes``; unknown names raise a ``TypeError`` naming them."""
@@ -113,8 +141,8 @@ def config_for(dataset: str, kitti_trans_threshold: float = 3.0, **changes) -> F
         base = FreeRegConfig()
         if name in ("scannet", "demo"):  # the official config/demo.yaml is scannet.yaml's setting
             base = base.override(depth_max=15.0)
-        elif name == "3dmatch":
-            base = base.override(densify="none")  # the raw sensor depth, holes kept
+        elif name in ("3dmatch", "icl"):
+            base = base.override(densify="none")  # sensor RGB-D frames: the raw depth, holes kept
     elif name in outdoor:
         base = FreeRegConfig(
             outdoor=True,
@@ -124,6 +152,8 @@ def config_for(dataset: str, kitti_trans_threshold: float = 3.0, **changes) -> F
             depth_min=0.5,
             depth_max=80.0,
             edge_filter_m=1.0,
+            cloud_far_m=80.0,
+            cloud_near_m=0.5,
             voxel_size=0.3,
             fpfh_voxel=0.5,
             tau_g=5.0,
@@ -232,3 +262,72 @@ def _type_name(tp) -> str:
     if isinstance(tp, type):
         return tp.__name__
     return str(tp).replace("typing.", "")
+
+
+# --------------------------------------------------------------------------------------
+# Ranges of the numeric fields (declared with :func:`ranged` beside each default).
+
+class _Interval:
+    """One interval of :func:`ranged`'s notation, or a single value (``"0"``)."""
+
+    def __init__(self, text: str):
+        text = text.strip()
+        self.text = text
+        if text[:1] in "[(":
+            lo, hi = (s.strip() for s in text[1:-1].split(","))
+            self.lo, self.hi = float(lo), float(hi)
+            self.lo_open, self.hi_open = text[0] == "(", text[-1] == ")"
+        else:
+            self.lo = self.hi = float(text)
+            self.lo_open = self.hi_open = False
+
+    def holds(self, v: float) -> bool:
+        above = v > self.lo if self.lo_open else v >= self.lo
+        below = v < self.hi if self.hi_open else v <= self.hi
+        return bool(above and below)
+
+
+def _holds(spec: str, v) -> bool:
+    if not isinstance(v, numbers.Real) or isinstance(v, bool):
+        return True  # the type check reports it
+    return any(_Interval(part).holds(float(v)) for part in spec.split("|"))
+
+
+def field_range(name: str):
+    """The declared range of field ``name`` (``None`` for a field without one)."""
+    f = FreeRegConfig.__dataclass_fields__.get(name)
+    return None if f is None else f.metadata.get("range")
+
+
+def range_problem(name: str, value) -> str:
+    """One line naming ``name``, ``value`` and the declared range when ``value`` lies outside
+    it; ``""`` when it is inside, or ``name`` has no range. Lists count as tuples."""
+    f = FreeRegConfig.__dataclass_fields__.get(name)
+    spec = None if f is None else f.metadata.get("range")
+    if spec is None:
+        return ""
+    shown = tuple(value) if isinstance(value, list) else value
+    if isinstance(value, (tuple, list)):
+        if f.metadata.get("distinct") and (not value or len(set(value)) != len(value)):
+            return (f"{name}={shown!r} must name one or more distinct entries, each in {spec} "
+                    f"(got {'none' if not value else 'a repeated one'})")
+        for item in value:
+            if isinstance(spec, tuple):  # entry by entry within each item (a ladder's rungs)
+                parts = item if isinstance(item, (tuple, list)) else (item,)
+                if any(not _holds(s, v) for s, v in zip(spec, parts)):
+                    return f"{name}={shown!r} is out of range: each item must be in {' x '.join(spec)}, got {item!r}"
+            elif not _holds(spec, item):
+                return f"{name}={shown!r} is out of range: each entry must be in {spec}, got {item!r}"
+        return ""
+    if not _holds(spec, value):
+        return f"{name}={value!r} is out of range: expected {' or '.join(s.strip() for s in spec.split('|'))}"
+    return ""
+
+
+def _check_ranges(cfg: FreeRegConfig) -> None:
+    """Raise ``ValueError`` (one line) naming every field of ``cfg`` outside its declared range."""
+    problems = [p for f in dataclasses.fields(cfg) if (p := range_problem(f.name, getattr(cfg, f.name)))]
+    if not problems and not cfg.depth_min < cfg.depth_max:
+        problems.append(f"depth_min={cfg.depth_min!r} must be below depth_max={cfg.depth_max!r}")
+    if problems:
+        raise ValueError("FreeRegConfig: " + "; ".join(problems))

@@ -15,7 +15,10 @@ run there, with one line naming the parameter, when
   string ``"[0, 4, 6]"``; lists and dicts go with ``-y``);
 * a value is not one of the known choices (an unknown backend, dataset, solver, ...);
 * papermill injected a name the notebook does not declare (a misspelt parameter: papermill
-  itself only warns "Passed unknown parameter" and runs on with the default).
+  itself only warns "Passed unknown parameter" and runs on with the default);
+* a value that sets a :class:`~freereg_lib.config.FreeRegConfig` field (same name, a name of
+  :data:`CONFIG_ALIASES`, or a key of ``config_overrides``) lies outside the range the field
+  declares (:func:`freereg_lib.config.range_problem`, the check ``FreeRegConfig`` runs itself).
 
 The same cell calls :func:`quiet_kernel` first, so the executed copies read well: progress bars
 as text (tqdm's widget bars are saved at 0 % by papermill) and no Open3D "WebVisualizer" banner.
@@ -60,13 +63,39 @@ def _choices() -> dict[str, tuple[str, ...]]:
         "backend": tuple(BACKENDS) + tuple(_ALIASES),
         "dataset": SYNTHETIC + EMBEDDED + ON_DISK,
         "solver": ("kabsch", "pnp"),
-        "kabsch_scoring": ("official", "matches"),
+        "kabsch_scoring": ("official", "open3d"),
         "geometric_method": ("fpfh", "fcgf"),
     }
 
 
 # Parameters whose value must be one of a few strings (None passes where the type allows it).
 CHOICES: dict[str, tuple[str, ...]] = _choices()
+
+# Parameters that set a FreeRegConfig field under another name (a list: one value per run).
+CONFIG_ALIASES: dict[str, str] = {"t_hats": "t_hat", "w_fused": "fusion_w", "weights": "fusion_w",
+                                  "sweep_ransac_iters": "ransac_iters"}
+
+
+def range_problem(name: str, value: Any) -> str:
+    """Why parameter ``name`` = ``value`` lies outside the range of the config field it sets
+    (``""`` when it does not, or sets none): one line from :func:`freereg_lib.config.range_problem`."""
+    from .config import field_range
+    from .config import range_problem as field_problem
+
+    if value is None:
+        return ""
+    if name == "config_overrides" and isinstance(value, dict):
+        return next((f"config_overrides: {p}" for k, v in value.items() if (p := field_problem(str(k), v))), "")
+    if field_range(name) is not None:
+        return field_problem(name, value)
+    field = CONFIG_ALIASES.get(name)
+    if field is None:
+        return ""
+    for v in value if isinstance(value, (list, tuple)) else [value]:
+        problem = field_problem(field, v)
+        if problem:
+            return f"{name} sets {field}: {problem}"
+    return ""
 
 
 class ParameterError(ValueError):
@@ -207,4 +236,7 @@ def check_parameters(namespace: Mapping[str, Any], spec: Mapping[str, Any] | Non
             key = value.lower().replace("-", "_") if isinstance(value, str) else value
             if key not in allowed:
                 raise ParameterError(f"parameter {name!r} is {value!r}; expected one of {', '.join(allowed)}")
+        problem = range_problem(name, value)
+        if problem:
+            raise ParameterError(f"parameter {name!r}: {problem}")
     return values
