@@ -641,9 +641,9 @@ def parse_args(argv=None):
     p.add_argument("--pnp-method", default=None,
                    help="cfg.pnp_method: the PnP-RANSAC method of pose.PNP_METHODS (default: the "
                         "config's, \"iterative\", the paper's; \"usac\" is the CPU speed-up)")
-    p.add_argument("--kabsch-scoring", default=None, choices=("official", "matches"),
-                   help="cfg.kabsch_scoring (default: the config's, \"official\", the paper's Open3D call; "
-                        "\"matches\" is the fast correspondence-scored RANSAC)")
+    p.add_argument("--kabsch-scoring", default=None, choices=("official", "open3d"),
+                   help="cfg.kabsch_scoring (default: the config's, \"official\", open3d 0.12's algorithm as the "
+                        "paper ran it; \"open3d\": the installed Open3D's call)")
     p.add_argument("--pnp-workers", type=int, default=1,
                    help="cfg.pnp_workers: threads sharing the PnP-RANSAC iterations (default 1)")
     p.add_argument("--batched-guidance", action="store_true",

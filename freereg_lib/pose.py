@@ -1,4 +1,4 @@
-"""Pose solvers: Kabsch-RANSAC (Open3D) on 3D-3D matches and PnP-RANSAC (OpenCV) on 2D-3D.
+"""Pose solvers: Kabsch-RANSAC (Open3D 0.12's algorithm) on 3D-3D matches and PnP-RANSAC (OpenCV) on 2D-3D.
 
 Both estimate ``T_cam_pc`` (point-cloud frame -> image camera) and return a
 :class:`PoseResult`; too few or degenerate matches give ``success=False`` with a reason,
@@ -56,7 +56,7 @@ def _split_similarity(M: np.ndarray) -> tuple[np.ndarray, float]:
     return T, s
 
 
-KABSCH_SCORINGS = ("official", "matches")
+KABSCH_SCORINGS = ("official", "open3d")
 
 
 def kabsch_ransac(
@@ -76,31 +76,35 @@ def kabsch_ransac(
     """Kabsch in RANSAC from image-side points ``pts_cam (N, 3)`` to cloud points ``pts_pc (M, 3)``.
 
     ``corres (K, 2) int`` pairs rows of ``pts_cam`` with rows of ``pts_pc`` (the matches);
-    None means the two arrays are matched row by row. As in the official code the clouds
-    are *all* keypoints of each side, not only the matched ones: Open3D's score reads them.
-    With ``with_scale`` the model is a similarity mapping the image side onto the cloud,
-    which absorbs monocular depth's global scale error; the returned pose is its rigid part
-    and ``scale`` the similarity's scale. The model is refined on the matches within 2x,
-    then 1x ``inlier_m`` (measured in the point-cloud frame); ``inliers`` index ``corres``.
+    None means the two arrays are matched row by row. With ``with_scale`` the model is a
+    similarity mapping the image side onto the cloud, which absorbs monocular depth's global
+    scale error; the returned pose is its rigid part and ``scale`` the similarity's scale.
+    ``inliers`` index ``corres``.
 
     ``scoring``:
 
-    * ``"official"``: Open3D's ``registration_ransac_based_on_correspondence`` as the official
-      code calls it (``ransac_n`` samples, no checker, ``confidence`` 1.0: all ``iterations``
-      run). Open3D keeps the hypothesis whose transformed image-side cloud has the most
-      nearest neighbours in the target cloud within ``inlier_m`` (its "fitness"), not the one
-      most matches support. It runs on one thread (``open3d.utility.set_max_threads``) so
-      that ``seed`` fixes the answer: Open3D's parallel workers draw from one shared
-      generator in a racy order.
-    * ``"matches"``: the same sampling and estimator in NumPy with a seeded generator, each
-      hypothesis scored by the number of *matches* within ``inlier_m`` (ties: lower RMSE).
-      A similarity cannot win by shrinking the image side onto a dense patch of the cloud.
+    * ``"official"`` (the paper's): the algorithm of Open3D 0.12, the version the official
+      code pins, of ``registration_ransac_based_on_correspondence`` (:func:`official_ransac`:
+      ``ransac_n`` correspondences drawn uniformly with replacement, Umeyama's estimator,
+      each hypothesis scored by the fraction of the matches within ``inlier_m``, ties to the
+      lower inlier RMSE), then the official refinement (:func:`official_refinement`). Seeded
+      NumPy, vectorised, byte-identical across processes.
+    * ``"open3d"``: the same call under the installed Open3D (0.15 and later score each
+      hypothesis by the nearest-neighbour fitness of the whole transformed image-side cloud
+      against the target cloud, which with scaling rewards shrunken similarities), then the
+      same refinement. Not the official behaviour; kept to measure the difference. It runs
+      on one Open3D thread so that ``seed`` fixes the answer.
 
     ``max_scale_ratio > 0`` rejects minimal samples whose edge lengths differ by more than
     that ratio between the sides (Open3D's edge-length checker) and fails a final scale
     outside ``[1 / ratio, ratio]``; 0 (the official call) checks nothing. ``confidence < 1``
     stops early once that confidence of having drawn an all-inlier sample is reached (a
     speed-up; the official code never stops early).
+
+    Departure, documented: when the refinement finds fewer than 4 inliers the official code
+    returns the RANSAC similarity with its rotation block still scaled; here the pose is
+    always the rigid part of the similarity. Its translation is the similarity's own in both,
+    which is the right camera position: the scale acts about the image camera's centre.
     """
     if scoring not in KABSCH_SCORINGS:
         raise ValueError(f"unknown Kabsch-RANSAC scoring {scoring!r}; expected one of {KABSCH_SCORINGS}")
@@ -124,26 +128,26 @@ def kabsch_ransac(
     if len(usable) < need:
         return _failed("kabsch", f"{len(usable)} usable matches (of {len(corres)}; usable: finite 3D points on both "
                                  f"sides), Kabsch-RANSAC needs at least {need}")
-    new_cam = np.cumsum(fin_cam) - 1
-    new_pc = np.cumsum(fin_pc) - 1
-    src, tgt = pts_cam[fin_cam], pts_pc[fin_pc]
-    pairs = np.stack([new_cam[corres[usable, 0]], new_pc[corres[usable, 1]]], axis=1)
-    src_m, tgt_m = src[pairs[:, 0]], tgt[pairs[:, 1]]
+    src_m, tgt_m = pts_cam[corres[usable, 0]], pts_pc[corres[usable, 1]]
     if scoring == "official":
-        M = _open3d_ransac(src, tgt, pairs, inlier_m, iterations, ransac_n, with_scale, seed, max_scale_ratio,
-                           confidence)
+        M = official_ransac(src_m, tgt_m, inlier_m, iterations, ransac_n, with_scale, seed, max_scale_ratio,
+                            confidence)
     else:
-        M, _ = _match_scored_ransac(src_m, tgt_m, inlier_m, iterations, ransac_n, with_scale, seed,
-                                    max_scale_ratio, confidence)
-    for factor in (2.0, 1.0):
+        new_cam = np.cumsum(fin_cam) - 1
+        new_pc = np.cumsum(fin_pc) - 1
+        pairs = np.stack([new_cam[corres[usable, 0]], new_pc[corres[usable, 1]]], axis=1)
+        M = _open3d_ransac(pts_cam[fin_cam], pts_pc[fin_pc], pairs, inlier_m, iterations, ransac_n, with_scale,
+                           seed, max_scale_ratio, confidence)
+    M, inl = official_refinement(src_m, tgt_m, M, inlier_m, with_scale, rigid_rotation=False)
+    if inl is None:
         resid = np.linalg.norm(src_m @ M[:3, :3].T + M[:3, 3] - tgt_m, axis=1)
-        inl = np.nonzero(resid < factor * inlier_m)[0]
-        if len(inl) < 3:
-            break
-        M = _umeyama(src_m[inl][None], tgt_m[inl][None], with_scale)[0]
-    resid = np.linalg.norm(src_m @ M[:3, :3].T + M[:3, 3] - tgt_m, axis=1)
-    inliers = usable[resid < inlier_m]
-    if len(inliers) < 3 or not np.all(np.isfinite(M)) or np.linalg.det(M[:3, :3]) <= 1e-12:
+        inl = np.nonzero(resid < inlier_m)[0]
+    inliers = usable[inl]
+    if not np.all(np.isfinite(M)) or np.linalg.det(M[:3, :3]) < 0:
+        # The official refinement has no reflection guard; a reflection is no pose.
+        return _failed("kabsch", f"the refined model is {'a reflection' if np.all(np.isfinite(M)) else 'not finite'} "
+                                 f"({len(inliers)} inliers)")
+    if len(inliers) < 3 or np.linalg.det(M[:3, :3]) <= 1e-12:
         return _failed("kabsch", f"RANSAC found a degenerate model ({len(inliers)} inliers)")
     T_pc_cam, scale = _split_similarity(M)
     if max_scale_ratio > 0 and not 1.0 / max_scale_ratio <= scale <= max_scale_ratio:
@@ -152,9 +156,131 @@ def kabsch_ransac(
     return PoseResult(cameras.invert(T_pc_cam), True, "kabsch", "", inliers, scale)
 
 
+def official_refine_stage(tgt_m: np.ndarray, src_m: np.ndarray, T: np.ndarray, weights: np.ndarray,
+                          inlier_m: float, with_scale: bool) -> tuple[float, np.ndarray, np.ndarray | None]:
+    """One stage of the official refinement (``refiner.Refine_trans``): ``(s, T_new, overlap)``.
+
+    The matches ``src_m (K, 3)`` -> ``tgt_m (K, 3)`` within ``inlier_m`` of ``T (4, 4)``
+    (squared distance strictly below ``inlier_m**2``) are ``overlap (k,) int64``; with fewer
+    than 4 the answer is ``(1.0, T, None)``. Otherwise a weighted Kabsch on them: centres
+    weighted by ``weights / weights.sum()``; with ``with_scale`` the scale is the ratio of
+    the standard deviations of the weighted, centred coordinates (all coordinates together,
+    target over source), not Umeyama's; the rotation is ``U Vt`` of the SVD of
+    ``tgt_c.T @ diag(w) @ (s src_c)`` with no reflection guard. ``T_new = [s R | c_t - s R c_s]``.
+    """
+    src_m = np.asarray(src_m, dtype=np.float64)
+    tgt_m = np.asarray(tgt_m, dtype=np.float64)
+    moved = src_m @ T[:3, :3].T + T[:3, 3]
+    d2 = np.sum(np.square(tgt_m - moved), axis=-1)
+    overlap = np.nonzero(d2 < inlier_m * inlier_m)[0]
+    if len(overlap) < 4:
+        return 1.0, np.array(T, dtype=np.float64, copy=True), None
+    w = np.asarray(weights, dtype=np.float64)[overlap]
+    w = w / w.sum()
+    tgt, src = tgt_m[overlap], src_m[overlap]
+    c_t, c_s = (tgt * w[:, None]).sum(axis=0), (src * w[:, None]).sum(axis=0)
+    s = 1.0
+    if with_scale:
+        s = float(np.std((tgt - c_t) * w[:, None]) / np.std((src - c_s) * w[:, None]))
+    src, c_s = src * s, c_s * s
+    H = (tgt - c_t).T @ (w[:, None] * (src - c_s))
+    U, _, Vt = np.linalg.svd(H)
+    R = U @ Vt
+    T_new = np.eye(4)
+    T_new[:3, :3] = s * R
+    T_new[:3, 3] = c_t - c_s @ R.T
+    return s, T_new, overlap
+
+
+def official_refinement(src_m: np.ndarray, tgt_m: np.ndarray, T0: np.ndarray, inlier_m: float, with_scale: bool,
+                        rigid_rotation: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    """The official refinement after RANSAC (``ransacor.run``): ``(T, inliers)``.
+
+    Two stages of :func:`official_refine_stage` with unit weights, at ``2 * inlier_m`` then
+    ``inlier_m``, starting from the RANSAC model ``T0 (4, 4)`` (image side -> cloud).
+    ``inliers (k,) int64`` are the second stage's overlap (matches within ``inlier_m`` of the
+    first stage's model), None when it had fewer than 4. With ``rigid_rotation`` (the
+    official return) the rotation block is divided by the second stage's scale while the
+    translation keeps the similarity's value; False returns the similarity itself.
+    """
+    ones = np.ones(len(src_m))
+    _, T, _ = official_refine_stage(tgt_m, src_m, T0, ones, 2.0 * inlier_m, with_scale)
+    s, T, inliers = official_refine_stage(tgt_m, src_m, T, ones, inlier_m, with_scale)
+    if rigid_rotation:
+        T = T.copy()
+        T[:3, :3] = T[:3, :3] / (s if s > 0 else 1.0)
+    return T, inliers
+
+
+def official_ransac(src: np.ndarray, tgt: np.ndarray, inlier_m: float, iterations: int, ransac_n: int = 4,
+                    with_scale: bool = True, seed: int = 0, max_scale_ratio: float = 0.0,
+                    confidence: float = 1.0, batch: int = 2048) -> np.ndarray:
+    """Open3D 0.12's correspondence RANSAC on matched rows ``src (K, 3)`` -> ``tgt (K, 3)``.
+
+    Each of ``iterations`` hypotheses is Umeyama's similarity (rigid without ``with_scale``)
+    on ``ransac_n`` rows drawn uniformly with replacement from ``np.random.default_rng(seed)``.
+    A hypothesis is better when more rows land strictly within ``inlier_m``, or as many with a
+    lower inlier RMSE; one with no inlier never wins, so no inlier at all returns the
+    identity, as Open3D does. ``confidence < 1`` stops early the way Open3D 0.12 does (the
+    official call passes 1000: never). Hypotheses are scored ``batch`` at a time with one
+    matrix product; the first best in draw order wins, so the answer does not depend on
+    ``batch``. Returns the best ``(4, 4)`` model.
+    """
+    rng = np.random.default_rng(seed)
+    K = len(src)
+    best, best_count, best_rmse = np.eye(4), 0, 0.0
+    done, stop = 0, int(iterations)
+    iu = np.triu_indices(ransac_n, 1)
+    src_t, tgt_t = np.ascontiguousarray(src.T), np.ascontiguousarray(tgt.T)
+    max_d2 = inlier_m * inlier_m
+    while done < stop:
+        b = min(batch, stop - done)
+        idx = rng.integers(0, K, size=(b, ransac_n))
+        first = done
+        done += b
+        s_smp, t_smp = src[idx], tgt[idx]
+        M = _umeyama(s_smp, t_smp, with_scale)
+        ok = np.all(np.isfinite(M), axis=(1, 2))
+        if max_scale_ratio > 0:
+            ds = np.linalg.norm(s_smp[:, :, None] - s_smp[:, None, :], axis=-1)[:, iu[0], iu[1]]
+            dt = np.linalg.norm(t_smp[:, :, None] - t_smp[:, None, :], axis=-1)[:, iu[0], iu[1]]
+            sim = 1.0 / max_scale_ratio
+            ok &= np.all((ds >= sim * dt) & (dt >= sim * ds), axis=1)
+        rows = np.nonzero(ok)[0]
+        if not len(rows):
+            continue
+        M = M[rows]
+        # One GEMM for all hypotheses' rotations: (b * 3, 3) @ (3, K); an inner dimension of 3
+        # is summed in one order whatever BLAS's threading, so the counts are reproducible.
+        diff = (M[:, :3, :3].reshape(-1, 3) @ src_t).reshape(len(M), 3, K) + M[:, :3, 3:] - tgt_t
+        d2 = np.einsum("bik,bik->bk", diff, diff)
+        inl = d2 < max_d2
+        count = inl.sum(axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rmse = np.sqrt(np.where(inl, d2, 0.0).sum(axis=1) / count)
+        top = count.max()
+        if top == 0:
+            continue
+        cand = np.nonzero(count == top)[0]
+        k = int(cand[np.argmin(rmse[cand])])  # argmin keeps the first of equal RMSEs: draw order
+        if top > best_count or (top == best_count and rmse[k] < best_rmse):
+            best, best_count, best_rmse = M[k], int(top), float(rmse[k])
+            if confidence < 1.0:
+                # Open3D 0.12 lowers its exit iteration when a hypothesis improves (per thread;
+                # here in draw order), counted from the first iteration.
+                fit = best_count / K
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    exit_at = np.log(1.0 - confidence) / np.log(1.0 - fit ** ransac_n)
+                if exit_at < stop:
+                    stop = max(int(np.ceil(exit_at)), first + int(rows[k]) + 1)
+    return best
+
+
 def _open3d_ransac(src, tgt, pairs, inlier_m, iterations, ransac_n, with_scale, seed, max_scale_ratio,
                    confidence) -> np.ndarray:
-    """Open3D's correspondence RANSAC on one of its (TBB) threads; the 4 x 4 model (image side -> cloud)."""
+    """The installed Open3D's correspondence RANSAC on one of its (TBB) threads; the 4 x 4 model
+    (image side -> cloud). Open3D's parallel workers draw from one shared generator in a
+    racy order, so one thread is what makes ``seed`` fix the answer."""
     import open3d as o3d
 
     reg = o3d.pipelines.registration
@@ -179,16 +305,16 @@ def _open3d_ransac(src, tgt, pairs, inlier_m, iterations, ransac_n, with_scale, 
 def _umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool) -> np.ndarray:
     """Least-squares similarity (or rigid) ``(B, 4, 4)`` taking ``src (B, n, 3)`` onto ``dst (B, n, 3)``.
 
-    Umeyama (1991), the estimator Open3D's point-to-point estimation uses. Degenerate
-    samples (coincident points) give non-finite models.
+    Umeyama (1991) as Eigen's ``umeyama`` computes it, the estimator of Open3D's
+    point-to-point estimation (reflections guarded). Degenerate samples (coincident points)
+    give non-finite models.
     """
     mu_s, mu_d = src.mean(axis=1, keepdims=True), dst.mean(axis=1, keepdims=True)
     xs, xd = src - mu_s, dst - mu_d
     sigma = np.einsum("bni,bnj->bij", xd, xs) / src.shape[1]
     U, D, Vt = np.linalg.svd(sigma)
     S = np.ones((len(src), 3))
-    S[:, 2] = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
-    S[S[:, 2] == 0, 2] = 1.0
+    S[:, 2] = np.where(np.linalg.det(U) * np.linalg.det(Vt) < 0, -1.0, 1.0)
     R = np.einsum("bij,bj,bjk->bik", U, S, Vt)
     if with_scale:
         var_s = np.einsum("bni,bni->b", xs, xs) / src.shape[1]
@@ -201,53 +327,6 @@ def _umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool) -> np.ndarray:
     M[:, :3, 3] = mu_d[:, 0] - np.einsum("bij,bj->bi", M[:, :3, :3], mu_s[:, 0])
     M[:, 3, 3] = 1.0
     return M
-
-
-def _match_scored_ransac(src, tgt, inlier_m, iterations, ransac_n, with_scale, seed, max_scale_ratio,
-                         confidence, batch: int = 1000) -> tuple[np.ndarray, int]:
-    """RANSAC over matched rows ``src (K, 3)`` -> ``tgt (K, 3)`` scored by the matches within
-    ``inlier_m``; samples from ``np.random.default_rng(seed)`` in batches of ``batch``
-    hypotheses. The best 4 x 4 model and the number of hypotheses drawn."""
-    rng = np.random.default_rng(seed)
-    K = len(src)
-    best, best_count, best_sse = np.eye(4), -1, np.inf
-    done, needed = 0, int(iterations)
-    iu = np.triu_indices(ransac_n, 1)
-    src_t, tgt_t = np.ascontiguousarray(src.T), np.ascontiguousarray(tgt.T)
-    while done < min(needed, iterations):
-        b = min(batch, int(iterations) - done)
-        idx = rng.integers(0, K, size=(b, ransac_n))
-        done += b
-        s_smp, t_smp = src[idx], tgt[idx]
-        ok = np.ones(b, bool)
-        if max_scale_ratio > 0:
-            ds = np.linalg.norm(s_smp[:, :, None] - s_smp[:, None, :], axis=-1)[:, iu[0], iu[1]]
-            dt = np.linalg.norm(t_smp[:, :, None] - t_smp[:, None, :], axis=-1)[:, iu[0], iu[1]]
-            sim = 1.0 / max_scale_ratio
-            ok = np.all((ds >= sim * dt) & (dt >= sim * ds), axis=1)
-        if not ok.any():
-            continue
-        M = _umeyama(s_smp[ok], t_smp[ok], with_scale)
-        M = M[np.all(np.isfinite(M), axis=(1, 2))]
-        if not len(M):
-            continue
-        # One GEMM for all hypotheses' rotations: (b * 3, 3) @ (3, K).
-        diff = (M[:, :3, :3].reshape(-1, 3) @ src_t).reshape(len(M), 3, K) + M[:, :3, 3:] - tgt_t
-        d2 = np.einsum("bik,bik->bk", diff, diff)
-        inl = d2 < inlier_m ** 2
-        count = inl.sum(axis=1)
-        sse = np.where(inl, d2, 0.0).sum(axis=1)
-        # The first hypothesis with the top count and the least squared error wins: deterministic.
-        order = np.lexsort((sse, -count))
-        k = int(order[0])
-        if count[k] > best_count or (count[k] == best_count and sse[k] < best_sse):
-            best, best_count, best_sse = M[k], int(count[k]), float(sse[k])
-            if confidence < 1.0 and best_count > 0:
-                ratio = best_count / K
-                if ratio >= 1.0:
-                    break
-                needed = int(np.ceil(np.log(1.0 - confidence) / np.log(1.0 - ratio ** ransac_n)))
-    return best, done
 
 
 def _pnp_methods() -> dict[str, int]:

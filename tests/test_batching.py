@@ -15,7 +15,7 @@ from freereg_lib.cache import CachedBackend  # noqa: E402
 from freereg_lib.pair import UnreadablePair  # noqa: E402
 
 SMALL = (64, 128)
-CFG = config_for("synthetic_indoor", ddim_steps=5, ransac_iters=2000, kabsch_scoring="matches")  # fast solver
+CFG = config_for("synthetic_indoor", ddim_steps=5, ransac_iters=2000)  # fast solver
 
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")

@@ -9,7 +9,7 @@ def test_stub_fused_kabsch_registers_most_synthetic_indoor_pairs():
     # The correspondence-scored Kabsch-RANSAC: the official Open3D scoring costs ~70 s a pair
     # here and is fooled by shrinking similarities (README, "Where this companion departs").
     # A wiring check, so 10k iterations instead of the paper's 50k keep it short.
-    cfg = config_for("synthetic_indoor", kabsch_scoring="matches", ransac_iters=10_000)
+    cfg = config_for("synthetic_indoor", ransac_iters=10_000)
     backend = get_backend("stub", cfg)
     pairs = synthetic.make_pairs(30, "indoor", seed=0)
     rows = pipeline.run_pairs(pairs, backend, cfg, variants=[("FreeReg", "kabsch")], progress=False)
@@ -20,7 +20,7 @@ def test_stub_fused_kabsch_registers_most_synthetic_indoor_pairs():
 
 def test_stub_positional_part_is_what_makes_features_match():
     """Without the scene-position part the same chain registers far fewer pairs: the test above can fail."""
-    cfg = config_for("synthetic_indoor", kabsch_scoring="matches")
+    cfg = config_for("synthetic_indoor")
     pairs = synthetic.make_pairs(6, "indoor", seed=100)
     rr = {}
     for share in (0.0, 0.3):

@@ -24,9 +24,7 @@ def _check_recovery(pair, rng):
     noisy_pc = _corrupt(pts_pc, rng)
     uv_px = np.rint(uv[keep])
     for res in (
-        # The official Open3D scoring with a similarity shrinks onto the outliers here
-        # (tests/test_official_pipeline.py); rigid, or scored by the matches, it recovers the pose.
-        pose.kabsch_ransac(pts_cam, noisy_pc, inlier_m=0.2, iterations=50_000, scoring="matches"),
+        pose.kabsch_ransac(pts_cam, noisy_pc, inlier_m=0.2, iterations=50_000),
         pose.kabsch_ransac(pts_cam, noisy_pc, inlier_m=0.2, iterations=5_000, with_scale=False),
         pose.pnp_ransac(uv_px, noisy_pc, pair.K_image, reproj_px=10.0, iterations=50_000),
     ):
@@ -92,7 +90,9 @@ def test_correct_matches_hand_computed():
     assert correct.tolist() == [True, False, False, True]
     ir, inn = metrics.inlier_stats(correct, evaluable)
     assert ir == pytest.approx(2 / 3) and inn == 2
-    assert metrics.inlier_stats(np.array([True, True]), np.array([True, True])) == (0.0, 2)
+    # Fewer than 3 evaluable: the official ir_cal scores IR 1, IN 1; "zero" scores IR 0.
+    assert metrics.inlier_stats(np.array([True, True]), np.array([True, True])) == (1.0, 1)
+    assert metrics.inlier_stats(np.array([True, True]), np.array([True, True]), "zero") == (0.0, 2)
 
 
 def test_pose_errors_hand_computed():
@@ -101,7 +101,8 @@ def test_pose_errors_hand_computed():
     re, te = metrics.pose_errors(T_est, T_gt)
     assert re == pytest.approx(10.0) and te == pytest.approx(0.0, abs=1e-12)
     T_est = cameras.make_pose(np.eye(3), [0.3, 0.4, 0.0])
-    assert metrics.pose_errors(T_est, T_gt) == pytest.approx((0.0, 0.5))
+    # The official quaternion formula has a floor: identical rotations give ~7.6e-6 deg, not 0.
+    assert metrics.pose_errors(T_est, T_gt) == pytest.approx((7.636e-6, 0.5), abs=1e-8)
 
 
 def test_aggregate_hand_computed():
@@ -156,11 +157,11 @@ def test_kabsch_scale_guard_prevents_shrink_collapse():
     pts_pc = rng.uniform([-20, -2, 5], [20, 2, 40], size=(400, 3))
     pts_cam = cameras.transform(T, pts_pc)
     pts_pc[:150] = rng.normal(scale=0.7, size=(150, 3)) + [0, 0, 20]
-    unguarded = pose.kabsch_ransac(pts_cam, pts_pc, 4.0, 20_000)  # the official call
-    assert unguarded.scale < 0.1  # the failure mode exists
-    guarded = pose.kabsch_ransac(pts_cam, pts_pc, 4.0, 20_000, max_scale_ratio=2.0)
-    scored = pose.kabsch_ransac(pts_cam, pts_pc, 4.0, 20_000, scoring="matches")
-    for res in (guarded, scored):
+    unguarded = pose.kabsch_ransac(pts_cam, pts_pc, 4.0, 20_000, scoring="open3d")  # a current Open3D's call
+    assert unguarded.scale < 0.2  # the failure mode exists
+    guarded = pose.kabsch_ransac(pts_cam, pts_pc, 4.0, 20_000, scoring="open3d", max_scale_ratio=2.0)
+    official = pose.kabsch_ransac(pts_cam, pts_pc, 4.0, 20_000)  # open3d 0.12's scoring, the default
+    for res in (guarded, official):
         assert res.success and abs(res.scale - 1) < 0.01
         re, te = metrics.pose_errors(res.T_cam_pc, T)
         assert re < 0.5 and te < 0.2
@@ -274,7 +275,9 @@ def test_pnp_workers_share_the_iterations_and_return_original_indices():
 def test_depth_side_is_scored_with_the_depth_frame_truth():
     """Depth-side keypoints are lifted with ``pair.depth_frame_gt`` when the pair has one (the
     official ``dpt_gtd``): every match on the frame is evaluable, and the matches the sparse
-    projected cloud could score keep their verdicts; without it only those are evaluable."""
+    projected cloud could score keep their verdicts; without it (and without densification,
+    3DMatch's rule: the raw map) only those are evaluable; with densification the densified
+    map is the truth (ScanNet / KITTI without a truth file)."""
     import dataclasses
 
     from freereg_lib import pipeline, synthetic
@@ -288,6 +291,10 @@ def test_depth_side_is_scored_with_the_depth_frame_truth():
     rng = np.random.default_rng(0)
     m = pipeline.Matches(rng.permutation(len(feats.uv_image))[:n], np.arange(n))
     ok_frame, ev_frame = pipeline.correct_matches(pair, feats, m, cfg)
-    ok_cloud, ev_cloud = pipeline.correct_matches(dataclasses.replace(pair, depth_frame_gt=None), feats, m, cfg)
+    no_file = dataclasses.replace(pair, depth_frame_gt=None)
+    ok_cloud, ev_cloud = pipeline.correct_matches(no_file, feats, m, cfg.override(densify="none"))
     assert ev_frame.all() and 0 < ev_cloud.sum() < 0.5 * n
     np.testing.assert_array_equal(ok_frame[ev_cloud], ok_cloud[ev_cloud])
+    assert pipeline.evaluation_truth(no_file, feats.view, cfg)[1] == "densified map"
+    _, ev_dense = pipeline.correct_matches(no_file, feats, m, cfg)
+    assert ev_dense.sum() > 0.9 * n

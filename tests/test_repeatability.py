@@ -1,6 +1,6 @@
 """The same seed gives the same bytes: ``pairs.csv`` of three runs in separate processes, on a
-synthetic pair and an ICL pair, with the default 50k-iteration solvers (the official Kabsch call,
-on Open3D's threads a race; the "matches" scoring samples from a seeded NumPy generator)."""
+synthetic pair and an ICL pair, with the default 50k-iteration solvers (the official Kabsch-RANSAC
+samples from a seeded NumPy generator; OpenCV's PnP-RANSAC seeds itself the same way each call)."""
 import subprocess
 import sys
 import textwrap
@@ -12,8 +12,7 @@ _RUN = textwrap.dedent("""
 
     scoring, out = sys.argv[1], sys.argv[2]
     rows = []
-    # A coarser keypoint grid keeps Open3D's 50k nearest-neighbour validations affordable on a CPU;
-    # the solvers, their iteration counts and their seeds are the defaults.
+    # The solvers, their iteration counts and their seeds are the defaults.
     for dataset, variants in (("synthetic_indoor", [("FreeReg", "kabsch"), ("FreeReg", "pnp")]),
                               ("icl", [("FreeReg-G", "kabsch"), ("FreeReg-G", "pnp")])):
         cfg = config_for(dataset, keypoint_grid=(12, 16), kabsch_scoring=scoring)

@@ -2,7 +2,9 @@
 
 22 rendered RGB-D frames (0, 10, ..., 210) with ground-truth poses. A pair is the colour
 image of frame ``i`` and the depth of frame ``j`` back-projected to a point cloud in
-camera ``j``'s frame, so ``T_cam_pc = inv(T_world_i) @ T_world_j``.
+camera ``j``'s frame, so ``T_cam_pc = inv(T_world_i) @ T_world_j``. Frame ``j``'s depth is
+the pair's ``sensor_depth``: sensor RGB-D frames are used as they are, as the official code
+uses 3DMatch's (``config_for("icl")`` densifies nothing).
 """
 from __future__ import annotations
 
@@ -74,6 +76,7 @@ class ICLSample:
             T_pc_sensor=np.eye(4),
             T_cam_pc=cameras.invert(self.pose(i)) @ self.pose(j),
             depth_gt=self.depth(i),
+            sensor_depth=depth_j,
             name=f"icl/{i:05d}-{j:05d}",
             meta={"dataset": "icl", "frame_image": i, "frame_cloud": j},
         )

@@ -199,9 +199,8 @@ def main(argv=None) -> int:
     p.add_argument("--skip-features", action="store_true", help="only the chain")
     p.add_argument("--geometric", default="fcgf", choices=("fcgf", "fpfh"),
                    help="the chain's geometric descriptor: the micro FCGF, or FPFH beside the micro depth")
-    p.add_argument("--kabsch-scoring", default="matches", choices=("official", "matches"),
-                   help="Kabsch-RANSAC scoring; 'matches' as the notebooks (the official Open3D scoring "
-                        "costs about 70 s a pair at 50k iterations here: README, 'Kabsch-RANSAC scoring')")
+    p.add_argument("--kabsch-scoring", default="official", choices=("official", "open3d"),
+                   help="Kabsch-RANSAC scoring: official (open3d 0.12's algorithm, the paper's) or open3d (the installed call)")
     p.add_argument("--out", default=None, help="write the result as JSON here (merged into an existing file)")
     args = p.parse_args(argv)
     cfg = FreeRegConfig(seed=args.seed, kabsch_scoring=args.kabsch_scoring)
