@@ -12,15 +12,19 @@ from disk instead of running Stable Diffusion, ControlNet and ZoeDepth again::
 
 Files: ``<cache_dir>/<backend name>/<method>/<key[:2]>/<key>.npz``; the key is a SHA-256
 of the backend's full identity (:func:`backend_identity`: its class, every plain setting such
-as the stub's noise or the tiny model's seed, its dtype and device, its weights folder and the
-size and modification time of every weight file, the library version and a hash of the
-backends' code), the method, ``params`` and every input array (dtype, shape, bytes). Each
-entry stores its key and is checked on read; an entry that cannot be read or holds another
+as the stub's noise or the tiny model's seed, its dtype and device, its weights folder (a
+relative path resolved against the working directory) and the size and SHA-256 of every weight
+file, the library version and a hash of the backends' code), the method, ``params``, the
+storage precision (``half``) and every input array (dtype, shape, bytes). The content hashes
+are computed once per file version (:func:`freereg_lib.weightcheck.file_sha256`, remembered by
+path, size, inode and change time in ``<cache_dir>/weight_hashes.json``), so weights rewritten
+with the same size and modification time (``cp -p``, ``rsync -a``, ``tar``) are still seen.
+Each entry stores its key and is checked on read; an entry that cannot be read or holds another
 key is reported (a warning naming its path), removed and computed again.
 Size: the nine decoder layers of one 512 x 704 input are about 20 MB in float32 (layer 6
 alone 7 MB); ``half=True`` stores diffusion layers as float16 (half that, returned as
-float32, relative error ~1e-3). Writes are atomic, so an interrupted run leaves no broken
-entry; delete the folder to clear the cache.
+float32, relative error ~1e-3; entries of their own). Writes are atomic, so an interrupted run
+leaves no broken entry; delete the folder to clear the cache.
 """
 from __future__ import annotations
 
@@ -35,8 +39,10 @@ from pathlib import Path
 import numpy as np
 
 from .backends.base import Backend, _hints, check_layers
+from .weightcheck import MODEL_FILES, WEIGHT_SUFFIXES, file_sha256
 
-# The config fields that change a backend's outputs (see FreeRegConfig).
+# The config fields that change a backend's outputs (see FreeRegConfig). batched_guidance and
+# pair_batch only batch the same computation (float rounding apart) and share entries.
 FEATURE_FIELDS = ("outdoor", "resize_hw", "t_hat", "ddim_steps", "ddim_eta", "guidance_w", "controlnet_scale",
                   "prompt", "negative_prompt", "seed", "sd_unet_variant", "controlnet", "dtype")
 
@@ -76,21 +82,57 @@ def _plain(value):
     return _SKIP
 
 
-def _weight_files(value, found: dict) -> None:
-    """Every existing file or folder that ``value`` names (paths, in dicts / lists too)."""
+_PATH_WORDS = ("dir", "path", "file", "weight", "checkpoint", "ckpt", "controlnet", "folder")
+
+
+def _as_path(value, key: str = "") -> Path | None:
+    """The existing file or folder ``value`` names, resolved (a relative path against the working
+    directory), or None. A relative string counts only when it looks like a path (a ``/``, a
+    leading ``.`` or ``~``) or its setting's name does (``weights_dir``, ``checkpoint``, ...)."""
+    if not isinstance(value, (str, os.PathLike)):
+        return None
+    text = os.fspath(value)
+    if not text:
+        return None
+    path = Path(text).expanduser()
+    pathlike = (isinstance(value, os.PathLike) or path.is_absolute() or "/" in text or text.startswith((".", "~"))
+                or any(w in key.lower() for w in _PATH_WORDS))
+    if not pathlike:
+        return None
+    try:
+        return path.resolve() if path.exists() else None
+    except OSError:
+        return None
+
+
+def _weight_files(value, found: dict, key: str = "", memo_file=None) -> None:
+    """``found[path] = [size, sha256]`` for every weight file ``value`` names (paths, in dicts /
+    lists too): a file itself, or the weight and model-config files under a folder
+    (:data:`~freereg_lib.weightcheck.WEIGHT_SUFFIXES`, ``config.json``, ...)."""
     if isinstance(value, dict):
-        for v in value.values():
-            _weight_files(v, found)
+        for k, v in value.items():
+            _weight_files(v, found, f"{key}.{k}", memo_file)
     elif isinstance(value, (tuple, list)):
         for v in value:
-            _weight_files(v, found)
-    elif isinstance(value, (str, os.PathLike)):
-        path = Path(value)
-        if path.is_absolute() and path.exists():
-            files = [path] if path.is_file() else sorted(f for f in path.rglob("*") if f.is_file())
-            for f in files:
-                st = f.stat()
-                found[str(f)] = [st.st_size, st.st_mtime_ns]
+            _weight_files(v, found, key, memo_file)
+    else:
+        path = _as_path(value, key)
+        if path is None:
+            return
+        files = [path] if path.is_file() else sorted(
+            f for f in path.rglob("*") if f.is_file() and (f.name.endswith(WEIGHT_SUFFIXES) or f.name in MODEL_FILES))
+        for f in files:
+            found[str(f)] = [f.stat().st_size, file_sha256(f, memo_file)]
+
+
+def _resolved(value, key: str = ""):
+    """A plain setting with every relative path that exists replaced by its absolute path."""
+    if isinstance(value, dict):
+        return {k: _resolved(v, f"{key}.{k}") for k, v in value.items()}
+    if isinstance(value, list):
+        return [_resolved(v, key) for v in value]
+    path = _as_path(value, key)
+    return str(path) if path is not None else value
 
 
 _CODE_HASH: list[str] = []
@@ -106,14 +148,15 @@ def _backend_code_hash() -> str:
     return _CODE_HASH[0]
 
 
-def backend_identity(backend) -> dict:
+def backend_identity(backend, memo_file=None) -> dict:
     """What makes ``backend``'s outputs what they are, besides the inputs and ``params``.
 
     Its class; every attribute that is a plain setting (numbers, strings, tuples, paths, torch
     dtype and device: the stub's noise, the tiny model's seed, the real backend's weights
     folder, ...; models, ``_private`` caches, counters and the config object are left out, the config's relevant
-    fields are ``params``); the size and modification time of every weight file its paths
-    name; the library version and a hash of the backends' code.
+    fields are ``params``), relative paths resolved; the size and SHA-256 of every weight file
+    its paths name (:func:`_weight_files`; ``memo_file`` remembers the hashes across runs); the
+    library version and a hash of the backends' code.
     """
     from . import __version__
 
@@ -121,8 +164,8 @@ def backend_identity(backend) -> dict:
     for k, v in sorted(vars(backend).items()):
         plain = _plain(v)
         if plain is not _SKIP and not k.startswith("_"):  # _private: caches, lazy models
-            settings[k] = plain
-            _weight_files(v, weights)
+            settings[k] = _resolved(plain, k)
+            _weight_files(v, weights, k, memo_file)
     kind = type(backend)
     return {"class": f"{kind.__module__}.{kind.__qualname__}", "name": getattr(backend, "name", None),
             "settings": settings, "weights": weights, "library": __version__, "code": _backend_code_hash()}
@@ -153,9 +196,13 @@ class CachedBackend:
         self.hits = 0
         self.misses = 0
         self.repaired = 0
-        self.identity = backend_identity(backend)
+        self.identity = backend_identity(backend, self.cache_dir / "weight_hashes.json")
+        # Files the params name (a single-file ControlNet checkpoint) count with their content too.
+        params_files: dict = {}
+        _weight_files(self.params, params_files, "", self.cache_dir / "weight_hashes.json")
         # default=str: tuples, paths and numbers all serialise the same way every run.
-        self._params_blob = json.dumps({"params": self.params, "backend": self.identity},
+        self._params_blob = json.dumps({"params": _resolved(self.params), "params_files": params_files,
+                                        "backend": self.identity, "half": bool(half)},
                                        sort_keys=True, default=str).encode()
 
     def __getattr__(self, attr):

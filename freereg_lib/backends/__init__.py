@@ -25,6 +25,7 @@ from .base import (
     n_guided_steps,
     official_resize_hw,
 )
+from ..weightcheck import WeightsError  # a weight file that is there but unusable
 from .stub import StubBackend
 from .torch_backends import MicroBackend, RealBackend, TinyBackend, resolve_device  # torch imported lazily
 
@@ -75,6 +76,7 @@ __all__ = [
     "SD15_LAYER_CHANNELS",
     "StubBackend",
     "TinyBackend",
+    "WeightsError",
     "depth_hint",
     "depth_to_uint8",
     "feature_timestep",

@@ -43,6 +43,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..weightcheck import WeightsError, check_safetensors
+
 CHANNELS = (None, 32, 64, 128, 256)
 TR_CHANNELS = (None, 64, 64, 64, 128)  # ResUNetBN2C
 CHECKPOINTS = {
@@ -303,9 +305,11 @@ def ResUNetBN2C(**kw):
     return modules()[3](**kw)
 
 
-class CheckpointRefused(ValueError):
+class CheckpointRefused(WeightsError):
     """A checkpoint file that is not a plain state-dict checkpoint (it pickles something
-    other than tensors, containers and the known config objects); nothing in it was run."""
+    other than tensors, containers and the known config objects); nothing in it was run.
+    A :class:`~freereg_lib.weightcheck.WeightsError` (a ``ValueError``), as every unusable
+    checkpoint."""
 
 
 class _Loose(dict):
@@ -380,13 +384,19 @@ def _load_checkpoint_file(path):
     if str(path).endswith(".safetensors"):  # the micro FCGF (float16 on disk; loaded as float32)
         from safetensors.torch import load_file
 
+        check_safetensors(path)
         return {k: v.float() if v.is_floating_point() else v for k, v in load_file(str(path)).items()}
+    _check_checkpoint_format(path)
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError:
         pass
+    except (RuntimeError, EOFError, ValueError, KeyError) as exc:
+        raise _unreadable(path, exc) from None
     try:
         return torch.load(path, map_location="cpu", weights_only=False, pickle_module=_restricted_pickle_module())
+    except (RuntimeError, EOFError, ValueError, KeyError) as exc:
+        raise _unreadable(path, exc) from None
     except pickle.UnpicklingError as exc:
         raise CheckpointRefused(
             f"{path} is not a plain state-dict checkpoint ({exc}); it was not loaded, since unpickling it "
@@ -403,10 +413,21 @@ def load_fcgf(checkpoint, conv1_kernel_size: int | None = None, device="cpu"):
 
     ``conv1_kernel_size`` (7 for 3DMatch, 5 for KITTI) defaults to the cube root of
     ``conv1.kernel``'s first dimension; in / out channels come from the kernels' shapes.
+    A file that is not such a checkpoint (another model's keys, a text file, a cut file) raises
+    :class:`~freereg_lib.weightcheck.WeightsError` naming it and what was expected.
     """
+    name = "the state dict given" if isinstance(checkpoint, dict) else str(checkpoint)
     ckpt = _load_checkpoint_file(checkpoint) if not isinstance(checkpoint, dict) else checkpoint
-    state = ckpt.get("state_dict", ckpt)
-    state = {k[len("module."):] if k.startswith("module.") else k: v for k, v in state.items()}
+    state = ckpt.get("state_dict", ckpt) if isinstance(ckpt, dict) else None
+    if not isinstance(state, dict) or not all(k in _strip(state) for k in _FCGF_KEYS):
+        found = sorted(map(str, _strip(state))) if isinstance(state, dict) else [type(ckpt).__name__]
+        shown = ", ".join(found[:6]) + (f", ... ({len(found)} keys)" if len(found) > 6 else "")
+        raise WeightsError(
+            f"{name} is not an FCGF (ResUNetBN2C) checkpoint: expected a state dict with "
+            f"{' and '.join(_FCGF_KEYS)} (at the top or under 'state_dict'), found {shown or 'nothing'}; "
+            "give the official 3DMatch / KITTI checkpoint (ResUNetBN2C-16feat-3conv.pth, KITTI-v0.3-ResUNetBN2C-"
+            "conv1-5-nout32.pth) or a micro FCGF's fcgf_micro.safetensors")
+    state = _strip(state)
     if conv1_kernel_size is None:
         conv1_kernel_size = int(round(state["conv1.kernel"].shape[0] ** (1 / 3)))
     out_channels = state["final.kernel"].shape[-1]
@@ -419,8 +440,52 @@ def load_fcgf(checkpoint, conv1_kernel_size: int | None = None, device="cpu"):
         if k in own and own[k].shape != v.shape and own[k].numel() == v.numel():
             v = v.reshape(own[k].shape)
         fixed[k] = v
-    net.load_state_dict(fixed, strict=True)
+    try:
+        net.load_state_dict(fixed, strict=True)
+    except RuntimeError as exc:
+        detail = " ".join(str(exc).split())[:300]
+        raise WeightsError(f"{name} does not fit FCGF's ResUNetBN2C (conv1 kernel {conv1_kernel_size}, "
+                           f"{in_channels} -> {out_channels} channels): {detail}") from None
     return net.to(device).eval()
+
+
+_FCGF_KEYS = ("conv1.kernel", "final.kernel")
+
+
+def _strip(state) -> dict:
+    """``state`` without DataParallel's ``module.`` prefixes."""
+    if not isinstance(state, dict):
+        return {}
+    return {k[len("module."):] if isinstance(k, str) and k.startswith("module.") else k: v for k, v in state.items()}
+
+
+def _check_checkpoint_format(path) -> None:
+    """Refuse, naming ``path``, a file that is neither a torch zip checkpoint nor a pickle (a
+    text file, an HTML page saved by a browser, an empty file)."""
+    with open(path, "rb") as f:
+        head = f.read(4)
+    if head[:2] == b"PK" or head[:1] == b"\x80":  # torch.save's zip, or a legacy pickle
+        return
+    kind = "an empty file" if not head else ("a text file" if _looks_like_text(path) else "not a torch checkpoint")
+    raise WeightsError(f"{path} is {kind}: expected an FCGF checkpoint saved by torch.save (a zip or pickle "
+                       "file: .pth), e.g. the official ResUNetBN2C-16feat-3conv.pth; a failed download saves an "
+                       "HTML page or an error message under the checkpoint's name")
+
+
+def _looks_like_text(path) -> bool:
+    with open(path, "rb") as f:
+        block = f.read(4096)
+    try:
+        block.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        return exc.start >= len(block) - 3  # only a character cut by the 4 kB read
+    return True
+
+
+def _unreadable(path, exc: Exception) -> WeightsError:
+    detail = " ".join(str(exc).split())[:200] or type(exc).__name__
+    return WeightsError(f"{path} cannot be read as a torch checkpoint ({type(exc).__name__}: {detail}): a truncated "
+                        "or damaged file (an interrupted copy or download?); copy it again")
 
 
 def voxelize(points: np.ndarray, voxel: float):

@@ -111,9 +111,12 @@ def save(model, folder: str | Path) -> None:
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
+    from ..weightcheck import write_manifest
+
     half = copy.deepcopy(model).to(torch.float16)
     half.save_pretrained(folder, safe_serialization=True)
     processor().save_pretrained(folder)
+    write_manifest(folder)
 
 
 def missing_files(folder: str | Path = WEIGHTS_DIR) -> list[str]:
@@ -122,20 +125,28 @@ def missing_files(folder: str | Path = WEIGHTS_DIR) -> list[str]:
 
 
 def load(folder: str | Path = WEIGHTS_DIR, device="cpu", flip: bool = True):
-    """The committed (or another exported) micro ZoeDepth as a ``ZoeDepthEstimator`` (float32)."""
+    """The committed (or another exported) micro ZoeDepth as a ``ZoeDepthEstimator`` (float32).
+
+    A truncated or damaged file (``SHA256SUMS``), or a ``config.json`` that does not fit the
+    weights, raises :class:`~freereg_lib.weightcheck.WeightsError` naming it."""
     import torch
     from transformers import ZoeDepthForDepthEstimation
 
     from ..backends.base import MissingWeightsError
+    from ..weightcheck import WeightsError, load_pretrained
 
     missing = missing_files(folder)
     if missing:
         raise MissingWeightsError(
             f"micro depth weights missing in {folder}: {', '.join(missing)}; retrain them with "
             f"`python -m freereg_lib.micro.train_depth --export {folder}`")
-    model = ZoeDepthForDepthEstimation.from_pretrained(str(folder), local_files_only=True,
-                                                       torch_dtype=torch.float32)
-    proc = type(processor()).from_pretrained(str(folder), local_files_only=True)
+    model = load_pretrained(ZoeDepthForDepthEstimation, folder, "the micro ZoeDepth", local_files_only=True,
+                            torch_dtype=torch.float32)
+    try:
+        proc = type(processor()).from_pretrained(str(folder), local_files_only=True)
+    except Exception as exc:  # noqa: BLE001 - named, in one line
+        raise WeightsError(f"{Path(folder) / 'preprocessor_config.json'} does not load: {type(exc).__name__}: "
+                           f"{(str(exc).splitlines() or [''])[0][:300]}") from None
     from ..backends.zoedepth import ZoeDepthEstimator
 
     return ZoeDepthEstimator(model.to(device).eval(), proc, torch.device(device), flip=flip)

@@ -40,6 +40,8 @@ def save(net, folder: str | Path, facts: dict | None = None) -> Path:
     ``config.json`` and, given ``facts``, ``training.json``."""
     from safetensors.torch import save_file
 
+    from ..weightcheck import write_manifest
+
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     state = {k: (v.half() if v.is_floating_point() else v).contiguous() for k, v in net.state_dict().items()}
@@ -49,6 +51,7 @@ def save(net, folder: str | Path, facts: dict | None = None) -> Path:
     (folder / "config.json").write_text(json.dumps(config, indent=1) + "\n")
     if facts is not None:
         (folder / "training.json").write_text(json.dumps(facts) + "\n")
+    write_manifest(folder)
     return folder / WEIGHTS_FILE
 
 
@@ -57,6 +60,7 @@ def load(folder: str | Path, device="cpu"):
     :class:`~freereg_lib.backends.MissingWeightsError` with the command that retrains it."""
     from ..backends.base import MissingWeightsError
     from ..backends.fcgf import load_fcgf
+    from ..weightcheck import check_folder
 
     path = Path(folder) / WEIGHTS_FILE
     if not path.is_file():
@@ -64,4 +68,5 @@ def load(folder: str | Path, device="cpu"):
             f"micro FCGF weights not found: {path}; retrain them with "
             f"`python -m freereg_lib.micro.train_fcgf --export {Path(folder)}`",
             model_ids=[WEIGHTS_FILE], searched=[str(path)])
+    check_folder(folder)  # whole safetensors, SHA256SUMS where there is one
     return load_fcgf(str(path), conv1_kernel_size=CONV1_KERNEL, device=device)

@@ -16,7 +16,9 @@ texts, the prompt and the negative prompt, and the UNet learns from their embedd
 UNet learns from a frozen CLIP.
 
 Weights live in ``weights/`` as diffusers / transformers folders (``config.json`` +
-``*.safetensors`` in float16 to keep the package small; loaded as float32).
+``*.safetensors`` in float16 to keep the package small; loaded as float32), each with a
+``SHA256SUMS`` manifest that :func:`load` verifies and :func:`save` rewrites
+(:mod:`freereg_lib.weightcheck`).
 """
 from __future__ import annotations
 
@@ -90,15 +92,18 @@ def save(models: dict, folder: str | Path, parts=PARTS) -> None:
 
     import torch
 
+    from ..weightcheck import write_manifest
+
     folder = Path(folder)
     for name in parts:
         m = models[name]
         if name == "tokenizer":
             m.save_pretrained(folder / name)
-            continue
-        # nn.Module.to: diffusers' own .to warns about float32-only modules these models lack.
-        half = torch.nn.Module.to(copy.deepcopy(m), torch.float16)
-        half.save_pretrained(folder / name, safe_serialization=True)
+        else:
+            # nn.Module.to: diffusers' own .to warns about float32-only modules these models lack.
+            half = torch.nn.Module.to(copy.deepcopy(m), torch.float16)
+            half.save_pretrained(folder / name, safe_serialization=True)
+        write_manifest(folder / name)
 
 
 def missing_parts(folder: str | Path = WEIGHTS_DIR) -> list[str]:
@@ -107,12 +112,17 @@ def missing_parts(folder: str | Path = WEIGHTS_DIR) -> list[str]:
 
 
 def load(folder: str | Path = WEIGHTS_DIR, device="cpu", parts=PARTS) -> dict:
-    """The micro models saved in ``folder`` (float32, eval mode, on ``device``)."""
+    """The micro models saved in ``folder`` (float32, eval mode, on ``device``).
+
+    Each part's files are checked first: whole safetensors files, the ``SHA256SUMS`` manifest
+    where there is one, a ``config.json`` that fits the weights; a problem raises
+    :class:`~freereg_lib.weightcheck.WeightsError` naming the file."""
     import torch
     from diffusers import AutoencoderKL, ControlNetModel, UNet2DConditionModel
     from transformers import CLIPTextModel, CLIPTokenizer
 
     from ..backends.base import MissingWeightsError
+    from ..weightcheck import WeightsError, check_folder, load_pretrained
 
     folder = Path(folder)
     missing = [p for p in parts if not (folder / p).is_dir()]
@@ -125,8 +135,13 @@ def load(folder: str | Path = WEIGHTS_DIR, device="cpu", parts=PARTS) -> dict:
     out = {}
     for name in parts:
         if name == "tokenizer":
-            out[name] = CLIPTokenizer.from_pretrained(folder / name)
+            check_folder(folder / name)
+            try:
+                out[name] = CLIPTokenizer.from_pretrained(folder / name)
+            except Exception as exc:  # noqa: BLE001 - named, in one line
+                raise WeightsError(f"the micro tokenizer in {folder / name} does not load: {type(exc).__name__}: "
+                                   f"{(str(exc).splitlines() or [''])[0][:300]}") from None
             continue
-        m = classes[name].from_pretrained(folder / name, torch_dtype=torch.float32)
+        m = load_pretrained(classes[name], folder / name, f"the micro {name}", torch_dtype=torch.float32)
         out[name] = m.to(device).eval()
     return out
