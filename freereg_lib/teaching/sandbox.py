@@ -1,0 +1,218 @@
+"""The student's process: its limits, its file-system confinement, and its end.
+
+* :func:`limit` (in the student's process, before any student code): ``RLIMIT_AS`` (memory),
+  ``RLIMIT_CPU``, ``RLIMIT_FSIZE`` (largest file written), no core dumps, and a cap on new
+  processes.
+* :func:`confine`: Linux Landlock (kernel 5.13+, no privileges needed), also before any
+  student code: reading only Python, its packages, the system's libraries and
+  ``freereg_lib`` (not the project's notebooks, answer keys or anything else of yours),
+  writing only in the submission's scratch folder, no TCP, and (kernel 6.12+) no signals to
+  processes outside. Where Landlock is missing the grade says so: the student's code could
+  then read your files (an answer key among them).
+* :func:`end_all` (in the grader): SIGKILL to the student's process group and session, to its
+  cgroup where one could be made, and to every process left that carries the submission's
+  marker in its environment, sits in its session or process group, was adopted by the grader
+  (a sub-reaper) from outside its session, or descends from any of those: a child that
+  called ``setsid()`` is found all the same.
+"""
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import os
+import resource
+import signal
+import sys
+import time
+from pathlib import Path
+
+MARKER_ENV = "FREEREG_GRADE_MARKER"
+_PR_SET_NO_NEW_PRIVS, _PR_SET_CHILD_SUBREAPER = 38, 36
+_SYS_CREATE, _SYS_ADD_RULE, _SYS_RESTRICT = 444, 445, 446  # the same on x86_64 and arm64
+_FS_EXECUTE, _FS_WRITE, _FS_READ_FILE, _FS_READ_DIR = 1, 2, 4, 8
+_FS_ALL = {1: (1 << 13) - 1, 2: (1 << 14) - 1, 3: (1 << 15) - 1, 4: (1 << 15) - 1}  # per ABI; 5+: 1 << 16
+_READ = _FS_EXECUTE | _FS_READ_FILE | _FS_READ_DIR
+
+
+def _libc():
+    return ctypes.CDLL(None, use_errno=True)
+
+
+def limit(memory_mb: int, cpu_s: int, file_mb: int, processes: int = 64) -> None:
+    """Resource limits of this process and all it starts (soft = hard: they cannot be raised)."""
+    settings = [(resource.RLIMIT_AS, memory_mb * 2**20), (resource.RLIMIT_CPU, cpu_s),
+                (resource.RLIMIT_FSIZE, file_mb * 2**20), (resource.RLIMIT_CORE, 0)]
+    if hasattr(resource, "RLIMIT_NPROC") and os.getuid() != 0:  # per user: what runs now, plus some
+        settings.append((resource.RLIMIT_NPROC, len(_user_pids()) + processes))
+    for which, value in settings:
+        with contextlib.suppress(ValueError, OSError):
+            resource.setrlimit(which, (value, value))
+
+
+def landlock_abi() -> int:
+    """The kernel's Landlock ABI version; 0 where there is none."""
+    if not sys.platform.startswith("linux"):
+        return 0
+    try:
+        libc = _libc()
+        libc.syscall.restype = ctypes.c_long
+        abi = libc.syscall(_SYS_CREATE, None, ctypes.c_size_t(0), ctypes.c_uint32(1))
+    except (OSError, AttributeError):
+        return 0
+    return max(int(abi), 0)
+
+
+def confine(read: list[Path], write: list[Path], read_dir_only: list[Path] = ()) -> int:
+    """Landlock this process (and its children, for good): returns the ABI used, 0 if unavailable."""
+    abi = landlock_abi()
+    if abi <= 0:
+        return 0
+    libc = _libc()
+    libc.syscall.restype = ctypes.c_long
+    fs_all = _FS_ALL.get(abi, (1 << 16) - 1)
+    net = 3 if abi >= 4 else 0         # bind and connect TCP: nowhere
+    scoped = 3 if abi >= 6 else 0      # abstract unix sockets and signals: only inside
+    attr = (ctypes.c_uint64 * 3)(fs_all, net, scoped)
+    size = 8 if abi < 4 else (16 if abi < 6 else 24)
+    fd = libc.syscall(_SYS_CREATE, ctypes.byref(attr), ctypes.c_size_t(size), ctypes.c_uint32(0))
+    if fd < 0:
+        return 0
+
+    class PathBeneath(ctypes.Structure):
+        _pack_ = 1
+        _fields_ = [("allowed_access", ctypes.c_uint64), ("parent_fd", ctypes.c_int32)]
+
+    def allow(path: Path, access: int) -> None:
+        try:
+            pfd = os.open(path, os.O_PATH | os.O_CLOEXEC)
+        except OSError:
+            return
+        try:
+            if not path.is_dir():
+                access &= _FS_EXECUTE | _FS_WRITE | _FS_READ_FILE | (1 << 14) | (1 << 15)
+            rule = PathBeneath(access & fs_all, pfd)
+            libc.syscall(_SYS_ADD_RULE, ctypes.c_int(fd), ctypes.c_int(1), ctypes.byref(rule), ctypes.c_uint32(0))
+        finally:
+            os.close(pfd)
+
+    try:
+        for p in read:
+            allow(Path(p), _READ)
+        for p in read_dir_only:
+            allow(Path(p), _FS_READ_DIR)
+        for p in write:
+            allow(Path(p), fs_all)
+        if libc.prctl(_PR_SET_NO_NEW_PRIVS, 1, 0, 0, 0) != 0:
+            return 0
+        if libc.syscall(_SYS_RESTRICT, ctypes.c_int(fd), ctypes.c_uint32(0)) != 0:
+            return 0
+    finally:
+        os.close(fd)
+    return abi
+
+
+# --------------------------------------------------------------------------------------
+# The grader's side.
+
+def subreaper(on: bool) -> None:
+    """Orphans of the student's processes are re-parented to this process instead of init."""
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(OSError, AttributeError):
+            _libc().prctl(_PR_SET_CHILD_SUBREAPER, int(on), 0, 0, 0)
+
+
+def make_cgroup(token: str) -> Path | None:
+    """A cgroup (v2) of its own for the submission, where this process may make one; else None."""
+    try:
+        line = next(ln for ln in Path("/proc/self/cgroup").read_text().splitlines() if ln.startswith("0::"))
+    except (OSError, StopIteration):
+        return None
+    for root in (Path("/sys/fs/cgroup"), Path("/sys/fs/cgroup/unified")):
+        base = root / line[3:].lstrip("/")
+        if (base / "cgroup.procs").is_file():
+            group = base / f"freereg-grade-{token}"
+            try:
+                group.mkdir()
+            except OSError:
+                return None
+            if (group / "cgroup.kill").exists():
+                return group
+            with contextlib.suppress(OSError):
+                group.rmdir()
+            return None
+    return None
+
+
+def _stat(pid: int) -> tuple[int, int, int] | None:
+    """(ppid, process group, session) of a live process; None when gone or a zombie."""
+    try:
+        text = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    fields = text[text.rfind(")") + 2:].split()
+    if fields[0] in ("Z", "X"):
+        return None
+    return int(fields[1]), int(fields[2]), int(fields[3])
+
+
+def _user_pids() -> list[int]:
+    uid = os.getuid()
+    pids = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            with contextlib.suppress(OSError):
+                if os.stat(f"/proc/{entry}").st_uid == uid:
+                    pids.append(int(entry))
+    return pids
+
+
+def _has_marker(pid: int, marker: str) -> bool:
+    try:
+        return f"{MARKER_ENV}={marker}".encode() in Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
+    except OSError:
+        return False
+
+
+def leftovers(sid: int, marker: str) -> list[int]:
+    """The processes of a submission still alive (see the module's docstring)."""
+    me, my_sid = os.getpid(), os.getsid(0)
+    table = {pid: st for pid in _user_pids() if pid != me and (st := _stat(pid))}
+    found = {pid for pid, (ppid, pgid, psid) in table.items()
+             if psid == sid or pgid == sid or (ppid == me and psid != my_sid) or _has_marker(pid, marker)}
+    grown = True
+    while grown:  # and everything they started
+        more = {pid for pid, (ppid, _, _) in table.items() if ppid in found and pid not in found}
+        found |= more
+        grown = bool(more)
+    return sorted(found)
+
+
+def end_all(pid: int, marker: str, cgroup: Path | None = None, rounds: int = 50) -> int:
+    """Kill the student's process ``pid`` (a session leader) and all it left; returns how many
+    other processes were found and killed. Reaps the adopted ones."""
+    with contextlib.suppress(OSError):
+        os.killpg(pid, signal.SIGKILL)
+    if cgroup is not None:
+        with contextlib.suppress(OSError):
+            (cgroup / "cgroup.kill").write_text("1")
+    killed: set[int] = set()
+    for _ in range(rounds):
+        found = [p for p in leftovers(pid, marker) if p != pid]
+        if not found:
+            break
+        for p in found:
+            with contextlib.suppress(OSError):
+                os.kill(p, signal.SIGKILL)
+        killed |= set(found)
+        time.sleep(0.02)
+    for p in killed:  # adopted orphans are our children now: reap them
+        with contextlib.suppress(ChildProcessError, OSError):
+            os.waitpid(p, os.WNOHANG)
+    if cgroup is not None:
+        for _ in range(50):
+            try:
+                cgroup.rmdir()
+                break
+            except OSError:
+                time.sleep(0.02)
+    return len(killed)
