@@ -181,6 +181,14 @@ def check_intrinsics(K: np.ndarray, size: tuple[int, int] | None = None, name: s
     fx, fy, cx, cy = arr[0, 0], arr[1, 1], arr[0, 2], arr[1, 2]
     if not (fx > 0 and fy > 0):
         raise ValueError(f"{name} has focal lengths fx = {fx:g}, fy = {fy:g} px; both must be > 0")
+    if arr[0, 1] != 0 or arr[1, 0] != 0:
+        # project() multiplies by the whole K, lift() reads fx, fy, cx, cy only: a skewed K would be
+        # used one way and not the other, so it is refused rather than half used.
+        what = (f"a skew K[0, 1] = {arr[0, 1]:g}" if arr[0, 1] != 0 else "") + (
+            f"{' and ' if arr[0, 1] != 0 else ''}K[1, 0] = {arr[1, 0]:g}" if arr[1, 0] != 0 else "")
+        raise ValueError(f"{name} has {what}: only a zero-skew pinhole K [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] is "
+                         "supported (lifting pixels to 3-D ignores skew while projection would use it); undistort / "
+                         "rectify the image to a zero-skew camera first")
     values = f"fx = {fx:g}, fy = {fy:g}, cx = {cx:g}, cy = {cy:g}"
     big = size is not None and min(size) >= 32
     if (fx < 2 and fy < 2) or (big and 0 <= cx <= 1 and 0 <= cy <= 1 and fx < 10 and fy < 10):
@@ -330,7 +338,30 @@ def nearest_sample(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return img[v, u]
 
 
+def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion ``(w, x, y, z)``, ``w >= 0``, of a ``(3, 3)`` rotation, by the
+    eigenvector method the official ``r_eval.quaternion_from_matrix(isprecise=False)`` uses
+    (robust to a rotation that is orthonormal only to the digits a pose file holds, and to a
+    uniform scale)."""
+    m = np.asarray(R, dtype=np.float64)[:3, :3]
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = m
+    Km = np.array([[m00 - m11 - m22, 0.0, 0.0, 0.0],
+                   [m01 + m10, m11 - m00 - m22, 0.0, 0.0],
+                   [m02 + m20, m12 + m21, m22 - m00 - m11, 0.0],
+                   [m21 - m12, m02 - m20, m10 - m01, m00 + m11 + m22]]) / 3.0
+    w, V = np.linalg.eigh(Km)  # the lower triangle is read
+    q = V[[3, 0, 1, 2], np.argmax(w)]
+    return -q if q[0] < 0 else q
+
+
 def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray) -> float:
-    """Angle of ``R_gt^T R_est`` in degrees."""
-    c = (np.trace(np.asarray(R_gt).T @ np.asarray(R_est)) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+    """Angle of ``R_gt^T R_est`` in degrees, as the official ``compute_R_diff``: from the two
+    quaternions, ``arccos(1 - 2 max(1e-15, 1 - <q, q_gt>^2))`` (identical rotations give
+    ~5e-6 deg, not 0)."""
+    eps = 1e-15
+    q = quaternion_from_matrix(R_est)
+    q_gt = quaternion_from_matrix(R_gt)
+    q = q / (np.linalg.norm(q) + eps)
+    q_gt = q_gt / (np.linalg.norm(q_gt) + eps)
+    loss = max(eps, 1.0 - float(np.sum(q * q_gt)) ** 2)
+    return float(np.degrees(abs(np.arccos(1.0 - 2.0 * loss))))

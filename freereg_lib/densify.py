@@ -4,8 +4,9 @@ The algorithm works on inverted depth so that closing and dilation favour near s
 valid depth d (> 0.1 m) becomes ``max_depth - d``, empty pixels stay 0, and the result is
 inverted back. The official code densifies ScanNet (and its demo) with ``fill_in_fast``
 (its copy: DIAMOND_KERNEL_7, max_depth 15 m), KITTI with ``fill_in_multiscale`` (IP-Basic's
-steps and kernels as they are), and 3DMatch not at all. Unlike the official copy, holes
-``fill_in_multiscale`` leaves stay 0 (no measurement) instead of 255 m.
+steps and kernels as they are), and 3DMatch not at all. As the official copy, holes
+``fill_in_multiscale`` leaves become 255 m (``hole_value``; ``cfg.multiscale_hole_m``): a KITTI
+hint then reads the sky as "far"; ``hole_value=0`` keeps them empty as IP-Basic itself does.
 
 Masked updates use ``np.where`` / ``np.copyto(where=)`` rather than boolean fancy indexing
 (the same float32 arithmetic, so bitwise the same maps, 1.5-2x faster).
@@ -102,6 +103,7 @@ def fill_in_multiscale(
     dilation_kernel_near: np.ndarray = CROSS_KERNEL_7,
     extrapolate: bool = False,
     blur_type: str = "bilateral",
+    hole_value: float = 255.0,
 ) -> np.ndarray:
     """IP-Basic's multi-scale densification, step by step; returns ``(H, W) float64``.
 
@@ -110,7 +112,8 @@ def fill_in_multiscale(
     each column's top measurement are filled with a 9 x 9 dilation, then six masked 5 x 5
     dilations; a median and a bilateral blur act on the filled pixels below the top
     measurement. The region above the top measurement (sky) stays empty unless
-    ``extrapolate``. Only IP-Basic's 255 m for the remaining holes is not copied: they stay 0.
+    ``extrapolate``. Pixels still below 0.1 at the end are set to ``hole_value``: the official
+    copy's 255 m by default (0: left empty).
     """
     d0 = _check(depth)
     valid = d0 > 0.1
@@ -146,7 +149,10 @@ def fill_in_multiscale(
         np.copyto(d, cv2.GaussianBlur(d, (5, 5), 0), where=(d > 0.1) & top_mask)
     elif blur_type == "bilateral":
         np.copyto(d, cv2.bilateralFilter(d, 5, 0.5, 2.0), where=blur_where)
-    return _uninvert(d, max_depth)
+    out = _uninvert(d, max_depth)
+    if hole_value:
+        out[out < 0.1] = hole_value
+    return out
 
 
 def _below_top(d: np.ndarray) -> np.ndarray:
@@ -155,16 +161,29 @@ def _below_top(d: np.ndarray) -> np.ndarray:
     return np.arange(d.shape[0])[:, None] >= top_rows[None, :]
 
 
-def densify(depth: np.ndarray, method: str = "fast", max_depth: float | None = None) -> np.ndarray:
+def densify(depth: np.ndarray, method: str = "fast", max_depth: float | None = None,
+            hole_value: float = 255.0) -> np.ndarray:
     """Dispatch on ``method``: ``"fast"``, ``"multiscale"`` or ``"none"`` (a float64 copy).
 
     ``max_depth`` (the inversion offset) defaults to what the official code uses: 15 m for
     ``fill_in_fast`` (its copy's default) and IP-Basic's 100 m for ``fill_in_multiscale``.
+    ``hole_value``: what ``fill_in_multiscale`` writes into the holes it leaves (official 255 m).
     """
     if method == "fast":
         return fill_in_fast(depth, max_depth=15.0 if max_depth is None else max_depth)
     if method == "multiscale":
-        return fill_in_multiscale(depth, max_depth=100.0 if max_depth is None else max_depth)
+        return fill_in_multiscale(depth, max_depth=100.0 if max_depth is None else max_depth,
+                                  hole_value=hole_value)
     if method == "none":
         return np.asarray(depth, dtype=np.float64).copy()
     raise ValueError(f"unknown densify method {method!r}; expected 'fast', 'multiscale' or 'none'")
+
+
+def dense_png(depth_png: np.ndarray, depth_scale: float, method: str) -> np.ndarray:
+    """The ``<id>.dense.depth.png`` the official ``gen_meta`` writes, ``(H, W) uint16``: the
+    PNG values ``/ depth_scale`` as float32, densified (``method``), ``* depth_scale`` in
+    float32 and truncated to uint16. The pipeline keeps the float map instead (within 1 unit
+    of the PNG, 1 mm indoors)."""
+    d = (np.asarray(depth_png, dtype=np.float64) / depth_scale).astype(np.float32)
+    dense = densify(d, method).astype(np.float32)
+    return (dense * np.float32(depth_scale)).astype(np.uint16)

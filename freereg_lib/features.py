@@ -5,11 +5,13 @@ Follows the official code (``shared/paper/FACTS.md``, "What the official code do
 * :func:`pca_reduce`: per chosen layer, each pixel vector L2-normalised over channels, one
   PCA basis fitted on the source and target pixels together (mean-centred covariance, top
   ``dim`` eigenvectors), every reduced layer bilinearly resized to the largest chosen map,
-  concatenated (384 channels for layers 0, 4, 6 at 128 each).
+  concatenated (384 channels for layers 0, 4, 6 at 128 each), NOT normalised (the official
+  ``merge_feat``: features are normalised only after sampling at keypoints).
 * :func:`sample_features`: the maps are (conceptually) bilinearly upsampled with
   ``align_corners=True`` to the original image size and sampled at keypoints, without
   building the full-size map.
-* :func:`fuse`: ``[w F_d, (1 - w) F_g]`` with each part L2-normalised (eps 1e-5) first.
+* :func:`fuse`: ``[w F_d, (1 - w) F_g]`` with each part L2-normalised first as the official
+  ``feature_merge_on_kpts``: ``f / (||f|| + 1e-5)``.
 """
 from __future__ import annotations
 
@@ -21,13 +23,14 @@ EPS = 1e-5
 
 
 def l2_normalize(x: np.ndarray, eps: float = EPS, axis: int = -1) -> np.ndarray:
-    """``x / max(||x||, eps)`` along ``axis`` (zero vectors stay zero), as
-    ``torch.nn.functional.normalize``."""
+    """``x / (||x|| + eps)`` along ``axis`` (zero vectors stay zero), as the official
+    ``feature_merge_on_kpts`` normalises each feature type (not ``F.normalize``'s
+    ``max(||x||, eps)``: the two differ by a relative 1e-5 on unit-size vectors)."""
     x = np.asarray(x)
     if not np.issubdtype(x.dtype, np.floating):
         x = x.astype(np.float64)
     n = np.linalg.norm(x, axis=axis, keepdims=True)
-    return x / np.maximum(n, eps)
+    return x / (n + np.asarray(eps, dtype=x.dtype))
 
 
 def _resize_matrix(n_out: int, n_in: int) -> np.ndarray:
@@ -116,7 +119,7 @@ def _pca_project_torch(X: np.ndarray, k: int, device: str) -> np.ndarray:
 
 def pca_reduce(maps_src: Sequence[np.ndarray], maps_tgt: Sequence[np.ndarray],
                layers: Sequence[int] = (0, 4, 6), dim: int = 128,
-               normalize: bool = True, device: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+               normalize: bool = False, device: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Per-layer joint PCA of a pair's decoder maps, resized and concatenated.
 
     Args:
@@ -126,8 +129,11 @@ def pca_reduce(maps_src: Sequence[np.ndarray], maps_tgt: Sequence[np.ndarray],
         dim: PCA components per layer (128). A layer gets ``min(dim, C, N)`` components when
             it has fewer channels ``C`` or fewer pixels ``N`` (source + target together), so
             the output then has fewer than ``dim * len(layers)`` channels.
-        normalize: L2-normalise the concatenated map per pixel (the paper's final step;
-            sampled features are re-normalised by :func:`fuse` anyway).
+        normalize: L2-normalise the concatenated map per pixel. Default False, as the
+            official ``merge_feat`` (the features are normalised after sampling at the
+            keypoints, by :func:`fuse`); True normalises before the upsampling, which mixes
+            neighbouring pixels' directions instead of their values (checked against the
+            official ``merge_feat`` and ``feature_merge_on_kpts`` by ``python -m freereg_lib.parity``).
         device: None (the reference): float64 NumPy on the host. ``"cuda"`` (or ``"cpu"``):
             the PCA in float32 torch on that device, equal up to float32 rounding
             (``cfg.pca_device``, a GPU speed-up).
@@ -137,6 +143,22 @@ def pca_reduce(maps_src: Sequence[np.ndarray], maps_tgt: Sequence[np.ndarray],
         largest chosen map (32 x 44 at 512 x 704 with layer 6) and ``C_total`` the sum of
         the per-layer component counts.
     """
+    red_s, red_t = pca_layers(maps_src, maps_tgt, layers, dim, device)
+
+    def merge(maps):
+        hw = (max(m.shape[1] for m in maps), max(m.shape[2] for m in maps))
+        out = np.concatenate([resize_bilinear(m, hw) for m in maps], axis=0)
+        if normalize:
+            out = l2_normalize(out, axis=0)
+        return out.astype(np.float32)
+
+    return merge(red_s), merge(red_t)
+
+
+def pca_layers(maps_src, maps_tgt, layers: Sequence[int] = (0, 4, 6), dim: int = 128,
+               device: str | None = None) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Per chosen layer, the joint PCA of the two sides' maps before any resize (the official
+    ``pca_feats``): two lists of ``(k, h, w) float64`` maps, one per layer."""
     if len(layers) == 0:
         raise ValueError("choose at least one layer")
     red_s, red_t = [], []
@@ -156,28 +178,24 @@ def pca_reduce(maps_src: Sequence[np.ndarray], maps_tgt: Sequence[np.ndarray],
         ns = Xs.shape[0]
         red_s.append(P[:ns].T.reshape(k, *S.shape[1:]))
         red_t.append(P[ns:].T.reshape(k, *T.shape[1:]))
-
-    def merge(maps):
-        hw = (max(m.shape[1] for m in maps), max(m.shape[2] for m in maps))
-        out = np.concatenate([resize_bilinear(m, hw) for m in maps], axis=0)
-        if normalize:
-            out = l2_normalize(out, axis=0)
-        return out.astype(np.float32)
-
-    return merge(red_s), merge(red_t)
+    return red_s, red_t
 
 
 def _sample_ac(fmap: np.ndarray, x: np.ndarray, y: np.ndarray, H: int, W: int) -> np.ndarray:
     """Value of ``fmap`` upsampled (align_corners=True) to ``(H, W)`` at integer pixels."""
     C, h, w = fmap.shape
-    X = x * ((w - 1) / (W - 1)) if W > 1 else np.zeros_like(x, dtype=np.float64)
-    Y = y * ((h - 1) / (H - 1)) if H > 1 else np.zeros_like(y, dtype=np.float64)
+    # Source positions in the map's own precision, as torch computes them for a float32 map
+    # (scale = (w - 1) / (W - 1) and scale * x in float32): float64 positions would move a
+    # keypoint's sample by up to ~4e-6 of a cell on a 640-pixel image, 5e-6 in the features.
+    f32 = np.float32 if fmap.dtype == np.float32 else np.float64
+    X = np.asarray(x, f32) * (f32(w - 1) / f32(W - 1)) if W > 1 else np.zeros(len(x), f32)
+    Y = np.asarray(y, f32) * (f32(h - 1) / f32(H - 1)) if H > 1 else np.zeros(len(y), f32)
     x0 = np.clip(np.floor(X).astype(int), 0, max(w - 2, 0))
     y0 = np.clip(np.floor(Y).astype(int), 0, max(h - 2, 0))
     x1 = np.minimum(x0 + 1, w - 1)
     y1 = np.minimum(y0 + 1, h - 1)
-    fx = np.clip(X - x0, 0.0, 1.0)[:, None]
-    fy = np.clip(Y - y0, 0.0, 1.0)[:, None]
+    fx = np.clip(X - x0.astype(f32), f32(0), f32(1))[:, None]
+    fy = np.clip(Y - y0.astype(f32), f32(0), f32(1))[:, None]
     f = fmap.transpose(1, 2, 0)  # (h, w, C) view
     return ((f[y0, x0] * (1 - fx) + f[y0, x1] * fx) * (1 - fy)
             + (f[y1, x0] * (1 - fx) + f[y1, x1] * fx) * fy)

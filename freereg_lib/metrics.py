@@ -6,12 +6,14 @@ Definitions follow the paper and the official code (``shared/paper/FACTS.md``):
   pixel lies in ``depth_range``; it is *correct* when the pixel, lifted with that true
   depth and moved into the cloud frame with the true pose, lies within ``tau_c`` of the
   matched cloud point;
-* per pair: IR = correct / evaluable (0 when fewer than 3 are evaluable), IN = correct;
+* per pair: IR = correct / evaluable, IN = correct; with fewer than 3 evaluable matches the
+  official code scores IR 1, IN 1 (``few="official"``, the default; ``"zero"``: IR 0);
 * over pairs: FMR = % of pairs with IR > 5 %, IR and IN are means (IR in %), RR = % of pairs
   with RE < tau_R and TE < tau_t.
-* RE is the angle of ``R_gt^T R_est``; TE is the distance between the true and estimated
-  camera centres in the cloud frame, ``|| t(T_pc_cam_gt) - t(T_pc_cam_est) ||``. A pair
-  whose solver failed has no RE / TE and is not registered.
+* RE is the angle of ``R_gt^T R_est`` (from quaternions, as the official ``compute_R_diff``);
+  TE is the distance between the true and estimated camera centres in the cloud frame,
+  ``|| t(T_pc_cam_gt) - t(T_pc_cam_est) ||`` (the official ``compute_T_err`` on its
+  ``gt = T_pc_cam``). A pair whose solver failed has no RE / TE and is not registered.
 """
 from __future__ import annotations
 
@@ -37,30 +39,78 @@ def correct_matches(
     ``depth_gt (H, W)`` the image's true depth. Returns ``correct (K,) bool`` and
     ``evaluable (K,) bool``; ``correct`` implies ``evaluable``.
     """
-    uv_image = np.asarray(uv_image, dtype=np.float64).reshape(-1, 2)
-    pts_pc = np.asarray(pts_pc, dtype=np.float64).reshape(-1, 3)
-    if len(uv_image) == 0:
-        return np.zeros(0, bool), np.zeros(0, bool)
-    z = cameras.nearest_sample(np.asarray(depth_gt, dtype=np.float64), uv_image)
-    evaluable = np.isfinite(z) & (z > depth_range[0]) & (z < depth_range[1])
-    evaluable &= np.all(np.isfinite(pts_pc), axis=1)
-    lifted = cameras.transform(cameras.invert(T_cam_pc_gt), cameras.lift(uv_image, np.where(evaluable, z, 0), K_image))
-    dist = np.linalg.norm(lifted - pts_pc, axis=1)
+    dist, evaluable, _ = match_distances(uv_image, pts_pc, depth_gt, K_image, T_cam_pc_gt, depth_range)
     correct = evaluable & (dist < tau_c)
     return correct, evaluable
 
 
-def inlier_stats(correct: np.ndarray, evaluable: np.ndarray) -> tuple[float, int]:
-    """Per-pair IR (fraction in [0, 1]) and IN; IR is 0 with fewer than 3 evaluable matches."""
+def match_distances(uv_image, pts_pc, depth_gt, K_image, T_cam_pc_gt, depth_range=(0.01, 10.0)):
+    """``(dist (K,), evaluable (K,) bool, lifted (K, 3))``: each image pixel lifted with its
+    true depth and moved into the cloud frame (``lifted``), and its distance to the matched
+    cloud point (NaN where not evaluable: true depth outside ``depth_range``, strict, or no
+    finite cloud point)."""
+    uv_image = np.asarray(uv_image, dtype=np.float64).reshape(-1, 2)
+    pts_pc = np.asarray(pts_pc, dtype=np.float64).reshape(-1, 3)
+    if len(uv_image) == 0:
+        return np.zeros(0), np.zeros(0, bool), np.zeros((0, 3))
+    z = cameras.nearest_sample(np.asarray(depth_gt, dtype=np.float64), uv_image)
+    evaluable = np.isfinite(z) & (z > depth_range[0]) & (z < depth_range[1])
+    evaluable &= np.all(np.isfinite(pts_pc), axis=1)
+    # np.linalg.inv, not the rigid inverse: a ground truth read from a file with few digits is
+    # orthonormal only to them, and the official code applies its gt as it is.
+    T_pc_cam = np.linalg.inv(np.asarray(T_cam_pc_gt, dtype=np.float64))
+    lifted = cameras.transform(T_pc_cam, cameras.lift(uv_image, np.where(evaluable, z, 0), K_image))
+    dist = np.where(evaluable, np.linalg.norm(lifted - np.where(np.isfinite(pts_pc), pts_pc, 0.0), axis=1), np.nan)
+    return dist, evaluable, lifted
+
+
+def lift_truth(uv: np.ndarray, depth_gt: np.ndarray, K: np.ndarray, depth_range=(0.01, 10.0)) -> np.ndarray:
+    """Pixels ``uv (K, 2)`` lifted with the true depth ``depth_gt`` into their camera frame,
+    ``(K, 3)``, NaN rows where the depth is outside ``depth_range`` (strict): the official
+    ``eval_mask`` of one side."""
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    z = cameras.nearest_sample(np.asarray(depth_gt, dtype=np.float64), uv) if len(uv) else np.zeros(0)
+    ok = np.isfinite(z) & (z > depth_range[0]) & (z < depth_range[1])
+    out = np.full((len(uv), 3), np.nan)
+    if ok.any():
+        out[ok] = cameras.lift(uv[ok], z[ok], K)
+    return out
+
+
+FEW_EVALUABLE = 3  # the official ir_cal: fewer evaluable matches than this give IR 1, IN 1
+
+
+def inlier_stats(correct: np.ndarray, evaluable: np.ndarray, few: str = "official") -> tuple[float, int]:
+    """Per-pair IR (fraction in [0, 1]) and IN.
+
+    With fewer than 3 evaluable matches the official ``ir_cal`` returns the distances ``[0]``,
+    so such a pair scores IR 1 and IN 1 (``few="official"``, the default, ``cfg.eval_few_matches``);
+    ``few="zero"`` scores IR 0 and IN the correct count instead. Rows report
+    ``n_evaluable`` so that such a pair can be seen.
+    """
     n_eval = int(np.count_nonzero(evaluable))
     n_correct = int(np.count_nonzero(correct))
-    return (n_correct / n_eval if n_eval >= 3 else 0.0), n_correct
+    if n_eval >= FEW_EVALUABLE:
+        return n_correct / n_eval, n_correct
+    if few == "official":
+        return 1.0, 1
+    if few == "zero":
+        return 0.0, n_correct
+    raise ValueError(f"few must be 'official' or 'zero', got {few!r}")
 
 
 def pose_errors(T_cam_pc_est: np.ndarray, T_cam_pc_gt: np.ndarray) -> tuple[float, float]:
     """RE in degrees and TE in metres between two ``T_cam_pc`` poses (see module docstring)."""
     T_est = cameras.invert(np.asarray(T_cam_pc_est, dtype=np.float64))
     T_gt = cameras.invert(np.asarray(T_cam_pc_gt, dtype=np.float64))
+    return transform_errors(T_est, T_gt)
+
+
+def transform_errors(T_est: np.ndarray, T_gt: np.ndarray) -> tuple[float, float]:
+    """The official ``compute_T_err(T_gt, T)`` on two transforms of one convention: RE from the
+    quaternions of the rotation blocks, TE = ``|| t_gt - t ||`` of the translation columns."""
+    T_est = np.asarray(T_est, dtype=np.float64)
+    T_gt = np.asarray(T_gt, dtype=np.float64)
     re = cameras.rotation_error_deg(T_est[:3, :3], T_gt[:3, :3])
     te = float(np.linalg.norm(T_gt[:3, 3] - T_est[:3, 3]))
     return re, te
@@ -83,7 +133,8 @@ def aggregate(
     Returns percentages ``FMR``, ``IR``, ``RR`` and ``RR@<deg>deg/<m>m`` for each ladder rung,
     the mean ``IN``, the mean and median ``RE`` / ``TE`` over pairs that have an estimate
     (``RE``, ``TE``, ``RE_median``, ``TE_median``) and over the registered pairs
-    (``RE_reg``, ``TE_reg``, ``RE_reg_median``, ``TE_reg_median``), and ``n_pairs`` /
+    (``RE_reg``, ``TE_reg``, ``RE_reg_median``, ``TE_reg_median``), ``n_few_evaluable`` (rows
+    with ``n_evaluable`` in 0..2: their truth covers too few matches to score) and ``n_pairs`` /
     ``n_failed`` (pairs without an estimate). The official tables average RE / TE over
     *all* pairs, a failed pair counting with the random pose the official code returns; a
     failed solve here has no pose, so that average cannot be formed. An empty list gives NaNs. A row
@@ -123,6 +174,10 @@ def aggregate(
     out["RE_reg_median"] = float(np.median(re[reg])) if reg.any() else math.nan
     out["TE_reg_median"] = float(np.median(te[reg])) if reg.any() else math.nan
     out["n_failed"] = int(n - has.sum())
+    if any("n_evaluable" in r for r in rows):
+        # Pairs whose truth covers fewer than 3 matches (scored IR 1, IN 1 by the official rule).
+        ne = np.array([r.get("n_evaluable", -1) for r in rows], dtype=np.float64)
+        out["n_few_evaluable"] = int(np.count_nonzero((ne >= 0) & (ne < FEW_EVALUABLE)))
     for deg, m in ladder:
         out[f"RR@{deg:g}deg/{m:g}m"] = 100.0 * float(
             np.mean([registered(a, b, deg, m) for a, b in zip(re, te)])

@@ -33,16 +33,25 @@ DEFAULT_VARIANTS = (
 class DepthView:
     """The point cloud seen from its depth camera.
 
-    ``raw (H_d, W_d)``: the sensor depth or the projected cloud (0 = empty), which is also
-    the depth side's ground truth in :func:`evaluate`; ``dense``: after densification;
-    ``index (H_d, W_d) int64``: the point behind each raw pixel (-1 = none); ``ids``:
-    class ids of the dense map (synthetic pairs only, else None).
+    ``raw (H_d, W_d)``: the sensor depth or the projected cloud (0 = empty); ``dense``:
+    after densification, depths outside ``(cfg.depth_min, cfg.depth_max)`` zeroed (the
+    official keypoint mask); ``index (H_d, W_d) int64``: the point behind each raw pixel
+    (-1 = none); ``ids``: class ids of the dense map (synthetic pairs only, else None);
+    ``full``: the densified map before that mask, what the official depth PNG holds: the
+    ControlNet hint is made from it, and it is the depth side's ground truth of a
+    densified dataset without a truth file (:func:`evaluation_truth`).
     """
 
     raw: np.ndarray
     dense: np.ndarray
     index: np.ndarray
     ids: np.ndarray | None
+    full: np.ndarray | None = None
+
+    @property
+    def hint_depth(self) -> np.ndarray:
+        """The map the ControlNet hint is made from: ``full`` (the official PNG, unclipped)."""
+        return self.dense if self.full is None else self.full
 
 
 def depth_view(pair: Pair, cfg: FreeRegConfig) -> DepthView:
@@ -50,8 +59,10 @@ def depth_view(pair: Pair, cfg: FreeRegConfig) -> DepthView:
 
     As in the official code the map is the depth frame's own sensor depth when the pair has
     one (``pair.sensor_depth``: 3DMatch, ScanNet, KITTI-DC), used as it is; otherwise the
-    cloud is projected on the depth camera (z-buffered, no edge filter). Depths outside
-    ``(cfg.depth_min, cfg.depth_max)`` become holes.
+    cloud is projected on the depth camera (z-buffered, no edge filter; ``cfg.cloud_projection``
+    "official": the official ``proj_pc2dpt``, pixels truncated, z > 0.05 m, no far limit). The
+    map is densified as it is (``view.full``, the hint's input); depths outside
+    ``(cfg.depth_min, cfg.depth_max)`` then become holes of ``view.dense``.
 
     Raises ``ValueError`` for a pair that fails :meth:`Pair.validate` or whose depth view is
     empty (the message counts where the points went).
@@ -61,24 +72,25 @@ def depth_view(pair: Pair, cfg: FreeRegConfig) -> DepthView:
         raise ValueError(f"pair {pair.name}: the point cloud is empty")
     if pair.sensor_depth is not None:
         raw = np.asarray(pair.sensor_depth, dtype=np.float64).copy()
-        raw[~((raw > cfg.depth_min) & (raw < cfg.depth_max))] = 0.0
+        raw[~np.isfinite(raw)] = 0.0
         index = np.full(raw.shape, -1, dtype=np.int64)
     else:
+        official = cfg.cloud_projection == "official"
         raw, index = projection.project_to_depth(
             pair.points, pair.K_depth, cameras.invert(pair.T_pc_sensor), pair.depth_size,
-            cfg.depth_min, cfg.depth_max,
+            cfg.depth_min, cfg.depth_max, pixel="official" if official else "round",
         )
-    if not np.any(raw > 0):
+    if not np.any((raw > cfg.depth_min) & (raw < cfg.depth_max)):
         where = ("its sensor_depth has no pixel in that range" if pair.sensor_depth is not None
                  else _where_points_went(pair, cfg))
         raise ValueError(f"pair {pair.name}: no point of the cloud projects into the depth view; {where}")
-    dense = densify.densify(raw, cfg.densify)
-    dense[(dense <= cfg.depth_min) | (dense >= cfg.depth_max)] = 0.0
+    full = densify.densify(raw, cfg.densify, hole_value=cfg.multiscale_hole_m)
+    dense = projection.clip_to_range(full, cfg.depth_min, cfg.depth_max)
     ids = None
     if pair.point_ids is not None and np.any(index >= 0):
         ids = _nearest_fill(np.where(index >= 0, pair.point_ids[np.maximum(index, 0)], 0), index >= 0)
         ids[dense == 0] = 0
-    return DepthView(raw, dense, index, ids)
+    return DepthView(raw, dense, index, ids, full)
 
 
 def _where_points_went(pair: Pair, cfg: FreeRegConfig) -> str:
@@ -133,7 +145,7 @@ def diffusion_maps(pair: Pair, view: DepthView, backend) -> tuple[list[np.ndarra
     only the image and the depth map.
     """
     hint_img, hint_dep = scene_hints(pair, view) if getattr(backend, "uses_scene_hints", False) else ({}, {})
-    return backend.diffusion_rgb(pair.image, **hint_img), backend.diffusion_depth(view.dense, **hint_dep)
+    return backend.diffusion_rgb(pair.image, **hint_img), backend.diffusion_depth(view.hint_depth, **hint_dep)
 
 
 def diffusion_maps_batch(pairs: list[Pair], views: list[DepthView], backend,
@@ -145,7 +157,7 @@ def diffusion_maps_batch(pairs: list[Pair], views: list[DepthView], backend,
     use_hints = getattr(backend, "uses_scene_hints", False)
     hints = [scene_hints(p, v) if use_hints else ({}, {}) for p, v in zip(pairs, views)]
     rgb = backend.diffusion_rgb_batch([p.image for p in pairs], [h[0] for h in hints], layers)
-    dep = backend.diffusion_depth_batch([v.dense for v in views], [h[1] for h in hints], layers)
+    dep = backend.diffusion_depth_batch([v.hint_depth for v in views], [h[1] for h in hints], layers)
     return list(zip(rgb, dep))
 
 
@@ -354,33 +366,50 @@ def correct_matches(pair: Pair, feats: PairFeatures, m: Matches, cfg: FreeRegCon
     if pair.depth_gt is None:
         raise ValueError(f"pair {pair.name} has no ground-truth image depth; matches cannot be scored")
     uv_dep = feats.uv_depth[m.idx_depth]
-    truth = feats.view.raw if pair.depth_frame_gt is None else pair.depth_frame_gt
-    z_true = cameras.nearest_sample(truth, uv_dep)
-    ok = (z_true > cfg.depth_min) & (z_true < cfg.depth_max)
-    pts_true = np.full((len(uv_dep), 3), np.nan)
+    truth, _ = evaluation_truth(pair, feats.view, cfg)
+    pts_true = metrics.lift_truth(uv_dep, truth, pair.K_depth, (cfg.depth_min, cfg.depth_max))
+    ok = np.isfinite(pts_true).all(axis=1)
     if ok.any():
-        pts_true[ok] = cameras.transform(pair.T_pc_sensor, cameras.lift(uv_dep[ok], z_true[ok], pair.K_depth))
+        pts_true[ok] = cameras.transform(pair.T_pc_sensor, pts_true[ok])
     return metrics.correct_matches(
         feats.uv_image[m.idx_image], pts_true, pair.depth_gt, pair.K_image,
         pair.T_cam_pc, cfg.tau_c if tau_c is None else tau_c, (cfg.depth_min, cfg.depth_max),
     )
 
 
+def evaluation_truth(pair: Pair, view: DepthView, cfg: FreeRegConfig) -> tuple[np.ndarray, str]:
+    """The depth side's ground truth and where it comes from, as the official evaluation
+    (``dpt_gtd``): the depth frame's truth file when the pair has one
+    (``pair.depth_frame_gt``: the demo's ``just_for_eval/target_dpt.gtd.png``, a frame's
+    ``.depth.gtd.png``, a synthetic room's full depth), else the densified map on a dataset
+    that densifies (ScanNet, KITTI: ``view.full``), else the raw map (3DMatch: the sensor
+    depth as read). Never the sparse projection of a cloud when a truth file exists."""
+    if pair.depth_frame_gt is not None:
+        return np.asarray(pair.depth_frame_gt, dtype=np.float64), "truth file"
+    if cfg.densify != "none":
+        return (view.dense if view.full is None else view.full), "densified map"
+    return view.raw, "raw map"
+
+
 def evaluate(pair: Pair, feats: PairFeatures, m: Matches, result: pose.PoseResult, cfg: FreeRegConfig) -> dict:
-    """Per-pair metrics: ``IR`` (fraction), ``IN``, ``RE``, ``TE``, ``registered``.
+    """Per-pair metrics: ``IR`` (fraction), ``IN``, ``RE``, ``TE``, ``registered``, ``n_evaluable``.
 
     As in the official evaluation both sides of a match are lifted with the ground-truth
     depth of their own frame: the image side with ``pair.depth_gt``, the depth side with
-    the depth frame's true depth (``pair.depth_frame_gt`` where the pair has one, else
-    ``view.raw``: the sensor depth, raw on 3DMatch, or the projected cloud), not with the
-    densified map the features were computed on. A match
-    whose true depth on either side is missing or outside the depth range is not evaluable.
+    :func:`evaluation_truth` (a truth file, else the densified map on ScanNet / KITTI, else
+    the raw map), not with the map the features were computed on. A match whose true depth
+    on either side is outside ``(cfg.depth_min, cfg.depth_max)`` is not evaluable;
+    ``n_evaluable`` counts those that are, and a pair with fewer than 3 scores IR 1, IN 1
+    as the official code (``cfg.eval_few_matches = "official"``; ``"zero"``: IR 0), which
+    :func:`summarize` counts in ``n_few_evaluable``.
     """
-    ir, inn = metrics.inlier_stats(*correct_matches(pair, feats, m, cfg))
+    correct, evaluable = correct_matches(pair, feats, m, cfg)
+    ir, inn = metrics.inlier_stats(correct, evaluable, cfg.eval_few_matches)
     re, te = metrics.pose_errors(result.T_cam_pc, pair.T_cam_pc) if result.success else (math.nan, math.nan)
     return {
         "IR": ir, "IN": inn, "RE": re, "TE": te,
         "registered": metrics.registered(re, te, cfg.rr_rot_deg, cfg.rr_trans_m),
+        "n_evaluable": int(np.count_nonzero(evaluable)),
     }
 
 
@@ -445,7 +474,7 @@ def _describe(exc: Exception) -> str:
 
 
 ROW_COLUMNS = ("pair", "method", "solver", "w", "n_matches", "IR", "IN", "RE", "TE", "registered",
-               "n_inliers", "scale", "error")
+               "n_evaluable", "n_inliers", "scale", "error")
 
 
 def rows_frame(rows: list[dict]):
@@ -456,7 +485,8 @@ def rows_frame(rows: list[dict]):
 
 
 def _row(pair, method, solver, w, n_matches, res, error, scores=None) -> dict:
-    scores = scores or {"IR": 0.0, "IN": 0, "RE": math.nan, "TE": math.nan, "registered": False}
+    # n_evaluable -1: not scored (the pair failed before matching).
+    scores = scores or {"IR": 0.0, "IN": 0, "RE": math.nan, "TE": math.nan, "registered": False, "n_evaluable": -1}
     return {
         "pair": pair.name, "method": method, "solver": solver, "w": w, "n_matches": n_matches,
         **scores,

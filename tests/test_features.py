@@ -28,15 +28,17 @@ def reference_pca_scores(X, k):
     return Xc @ Vt[:k].T
 
 
-def test_pca_output_is_128_per_layer_and_normalised():
+def test_pca_output_is_128_per_layer_and_not_normalised_by_default():
+    # The official merge_feat does not normalise the merged map (features are normalised
+    # after sampling at the keypoints); normalize=True is the option.
     rng = np.random.default_rng(0)
     src, tgt = fake_layers(rng), fake_layers(rng)
-    fs, ft = pca_reduce(src, tgt, layers=(0, 4, 6), dim=128)
+    fs, ft = pca_reduce(src, tgt, layers=(0, 4, 6), dim=128, normalize=True)
     assert fs.shape == ft.shape == (384, 32, 44)
     assert fs.dtype == np.float32
     assert np.allclose(np.linalg.norm(fs, axis=0), 1.0, atol=1e-5)
     assert np.allclose(np.linalg.norm(ft, axis=0), 1.0, atol=1e-5)
-    raw_s, _ = pca_reduce(src, tgt, layers=(0, 4, 6), dim=128, normalize=False)
+    raw_s, _ = pca_reduce(src, tgt, layers=(0, 4, 6), dim=128)
     assert not np.allclose(np.linalg.norm(raw_s, axis=0), 1.0)
 
 
@@ -134,7 +136,7 @@ def test_l2_normalize():
     y = l2_normalize(x)
     assert np.allclose(y[0], [0.6, 0.8])
     assert np.all(y[1] == 0)
-    assert np.allclose(y[2], [1e-7 / 1e-5, 0.0])  # below eps: divided by eps, not blown up
+    assert np.allclose(y[2], [1e-7 / (1e-7 + 1e-5), 0.0])  # x / (|x| + eps), the official form: not blown up
 
 
 def test_fuse_weights_and_normalisation():

@@ -230,13 +230,24 @@ def depth_to_uint8(depth: np.ndarray) -> np.ndarray:
     return np.clip(x * 255.0, 0, 255).astype(np.uint8)
 
 
-def depth_hint(depth: np.ndarray, resize_hw: tuple[int, int]) -> np.ndarray:
-    """ControlNet conditioning image ``(3, h, w) float32`` in [0, 1] for ``depth (H, W)``:
-    :func:`depth_to_uint8`, 3 channels, resized to ``resize_hw``, divided by 255."""
+def hint_image(depth: np.ndarray, resize_hw: tuple[int, int]) -> np.ndarray:
+    """The official ``load_dpt`` hint ``(h, w, 3) uint8``: :func:`depth_to_uint8` of the map as
+    it is (no clipping to a depth range; the PNG's values in the official code, whose scale
+    does not matter), 3 channels, resized to ``resize_hw`` by :func:`resize_to`."""
     u8 = depth_to_uint8(depth)
     u8 = np.repeat(u8[:, :, None], 3, axis=2)
-    u8 = resize_to(u8, resize_hw)
-    return np.ascontiguousarray(u8.transpose(2, 0, 1), dtype=np.float32) / 255.0
+    return resize_to(u8, resize_hw)
+
+
+def hint_to_unit(hint: np.ndarray) -> np.ndarray:
+    """``(h, w, 3) uint8`` hint -> ``(3, h, w) float32`` ``hint / 255`` (the official ``control_input``)."""
+    return np.ascontiguousarray(np.asarray(hint).transpose(2, 0, 1), dtype=np.float32) / np.float32(255.0)
+
+
+def depth_hint(depth: np.ndarray, resize_hw: tuple[int, int]) -> np.ndarray:
+    """ControlNet conditioning image ``(3, h, w) float32`` in [0, 1] for ``depth (H, W)``:
+    :func:`hint_image` divided by 255 (:func:`hint_to_unit`)."""
+    return hint_to_unit(hint_image(depth, resize_hw))
 
 
 def rgb_to_unit(image: np.ndarray, resize_hw: tuple[int, int]) -> np.ndarray:
@@ -249,7 +260,8 @@ def rgb_to_unit(image: np.ndarray, resize_hw: tuple[int, int]) -> np.ndarray:
     if img.dtype != np.uint8:
         raise ValueError(f"image must be uint8 RGB, got dtype {img.dtype}")
     img = resize_to(img, resize_hw)
-    return np.ascontiguousarray(img.transpose(2, 0, 1), dtype=np.float32) / 127.5 - 1.0
+    # (x - 127.5) / 127.5 in float32, as the official sd_input (x / 127.5 - 1 differs by an ulp).
+    return (np.ascontiguousarray(img.transpose(2, 0, 1), dtype=np.float32) - np.float32(127.5)) / np.float32(127.5)
 
 
 # --------------------------------------------------------------------------------------
@@ -268,13 +280,16 @@ def n_guided_steps(t_hat: int, ddim_steps: int, num_train_timesteps: int = 1000)
     return int(min(max(idx, 0), ddim_steps))
 
 
-def feature_timestep(t_hat: int, ddim_steps: int, num_train_timesteps: int = 1000) -> int:
+def feature_timestep(t_hat: int, ddim_steps: int, num_train_timesteps: int = 1000,
+                     clip: bool = True) -> int:
     """The timestep of the feature pass (RGB and depth), as the official code forces it:
     ``int((steps - index) * (1000 / steps))`` with ``index`` = :func:`n_guided_steps`.
-    Equal to ``t_hat`` at the defaults (150 at 20 steps); 200 at 5 steps."""
+    Equal to ``t_hat`` at the defaults (150 at 20 steps); 200 at 5 steps. ``clip``: at most
+    999, the last timestep the noise schedule has (the official code gives 1000 for
+    ``t_hat`` above 975, where its own forward noising has no schedule entry either)."""
     idx = n_guided_steps(t_hat, ddim_steps, num_train_timesteps)
     t = int((ddim_steps - idx) * (num_train_timesteps / ddim_steps))
-    return int(min(max(t, 0), num_train_timesteps - 1))
+    return int(min(max(t, 0), num_train_timesteps - 1)) if clip else t
 
 
 def seed_from(*parts) -> int:

@@ -7,6 +7,7 @@ Layout (the official repository's ``data/demo/``; also the way to bring one's ow
     <root>/intrinsics.json                     optional, the cameras (default: the demo's own)
     <root>/just_for_eval/rgb2pc.gt.pose.txt    4 x 4 ground truth, RGB camera -> cloud frame
     <root>/just_for_eval/source_rgb.gtd.png    optional: true depth of the RGB, millimetres
+    <root>/just_for_eval/target_dpt.gtd.png    optional: true dense depth of the depth camera, millimetres
 
 ``intrinsics.json`` uses the names of the official ``config/demo.yaml``:
 ``{"rgb_intrinsic": 3 x 3, "dpt_intrinsic": 3 x 3, "rgb_size": [W, H], "dpt_size": [W, H],
@@ -18,7 +19,9 @@ intrinsics must fit their sizes (in pixels, not normalised). The cloud is projec
 points into the cloud frame, so :class:`~freereg_lib.pair.Pair`'s ``T_cam_pc`` is its
 inverse. Without ``source_rgb.gtd.png`` the pair has no ``depth_gt`` (it can be
 registered, not scored); its value 65535 is a hole, and a median outside 0.1..20 m is
-refused (units). ``config_for("demo")`` is the official ``config/demo.yaml``'s setting (the
+refused (units). ``target_dpt.gtd.png`` (dpt_size) is the depth side's truth, the pair's
+``depth_frame_gt``, as the official demo scores it (not the sparse projection of the cloud,
+which covers ~6 % of the pixels); without it the densified projection is the truth. ``config_for("demo")`` is the official ``config/demo.yaml``'s setting (the
 ScanNet one: indoor, depth up to 15 m).
 """
 from __future__ import annotations
@@ -169,11 +172,18 @@ def load_demo_pair(root: str | Path) -> Pair:
         if depth_gt.shape != image.shape[:2]:
             raise ValueError(f"{gtd} is {depth_gt.shape[1]} x {depth_gt.shape[0]}, expected the RGB's "
                              f"{image.shape[1]} x {image.shape[0]}")
+    dpt_gtd = root / "just_for_eval" / "target_dpt.gtd.png"
+    depth_frame_gt = None
+    if dpt_gtd.is_file():
+        depth_frame_gt = read_depth(dpt_gtd, float(cams["dpt_scale"]), INVALID_DEPTH, INDOOR_DEPTH_RANGE)
+        if depth_frame_gt.shape != (int(h_dpt), int(w_dpt)):
+            raise ValueError(f"{dpt_gtd} is {depth_frame_gt.shape[1]} x {depth_frame_gt.shape[0]}, expected the "
+                             f"depth camera's {w_dpt} x {h_dpt} (dpt_size)")
     return Pair(
         image=image, K_image=K_rgb, points=read_ply_points(root / "target_pc.ply"), K_depth=K_dpt,
         depth_size=(int(h_dpt), int(w_dpt)), T_pc_sensor=np.eye(4),
         T_cam_pc=cameras.invert(T_pc_cam),
-        depth_gt=depth_gt,
+        depth_gt=depth_gt, depth_frame_gt=depth_frame_gt,
         name="demo/source_rgb-target_pc",
         meta={"dataset": "demo", "outdoor": False},
     )

@@ -209,3 +209,27 @@ class KittiDC(PairSource):
             meta={"dataset": "kitti", "scene": drive, "frame_image": i, "frame_cloud": j,
                   "distance": entry.score, "outdoor": True},
         )
+
+
+# --------------------------------------------------------------------------------------
+# The official FreeReg KITTI-DC data (its dataops/metas.py), for data in that layout.
+
+# config/kitti.yaml of the official code (images pre-cropped to 1242 x 225).
+K_OFFICIAL = np.array([[721.5377, 0.0, 609.5593], [0.0, 721.5377, 22.8540], [0.0, 0.0, 1.0]])
+
+
+def official_seq_pairs(n_frames: int, seq_n_pair: int = 4) -> list[tuple[int, int]]:
+    """The official sequence pairs of a KITTI drive of ``n_frames``: frame ``i`` against
+    ``i + 1 .. i + seq_n_pair - 1`` for ``i < n_frames - seq_n_pair`` (``gen_meta``'s 'seq'
+    rule with ``seq_n_pair = 4``: three pairs per frame, the last four frames start none)."""
+    return [(i, j) for i in range(n_frames - seq_n_pair) for j in range(i + 1, i + seq_n_pair)]
+
+
+def trans_gt_for_kitti(gt: np.ndarray) -> np.ndarray:
+    """The official ``trans_gt_for_kitti`` on a pair's ``gt = inv(T_j) @ T_i``: rows and columns
+    of R permuted ``[0, 2, 1]``, ``t -> [t2, -t1, t0]`` (a copy; the official one works in place)."""
+    out = np.array(gt, dtype=np.float64, copy=True)
+    out[:3, :3] = out[:3, :3][[0, 2, 1]][:, [0, 2, 1]]
+    t = out[:3, 3].copy()
+    out[:3, 3] = [t[2], -t[1], t[0]]
+    return out

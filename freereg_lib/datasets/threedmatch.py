@@ -7,6 +7,7 @@ Layout (the official FreeReg test data; ``<id>`` is an integer frame number)::
     <root>/<scene>/query/<id>_pose.txt        4 x 4 pose of the camera in the scene (camera -> world)
     <root>/<scene>/query/overlap.txt          one candidate pair per row: "i j overlap"
     <root>/<scene>/query/<id>.color.gtd.png   optional: true depth of the RGB at its own size
+    <root>/<scene>/query/<id>.depth.gtd.png   optional: true depth of the depth frame (ScanNet's data)
 
 A pair is the RGB of frame ``i`` against the point cloud back-projected from the depth of
 frame ``j``, in camera ``j``'s frame (the depth view is camera ``j`` itself), kept when
@@ -143,11 +144,18 @@ class FreeRegScenes(PairSource):
                                      self.image_size, gtd)
         else:
             depth_gt = depth_in_image(self.depth(s, i), self.K_depth, self.K_image, self.image_size)
+        # The depth side's truth: <j>.depth.gtd.png when the data has one (the official dpt_gtd),
+        # else the pipeline's rule (the densified map when the dataset densifies, else the raw one).
+        dpt_gtd = self.root / s / "query" / f"{j}.depth.gtd.png"
+        depth_frame_gt = None
+        if dpt_gtd.is_file():
+            depth_frame_gt = self._checked(read_depth(dpt_gtd, self.depth_scale, self.invalid_depth, self.depth_range),
+                                           self.depth_size, dpt_gtd)
         return Pair(
             image=image, K_image=self.K_image.copy(), points=points, K_depth=self.K_depth.copy(),
             depth_size=self.depth_size, T_pc_sensor=np.eye(4),
             T_cam_pc=cameras.invert(self.pose(s, i)) @ self.pose(s, j),
-            depth_gt=depth_gt, sensor_depth=sensor_depth, name=f"{self.dataset}/{entry.key}",
+            depth_gt=depth_gt, sensor_depth=sensor_depth, depth_frame_gt=depth_frame_gt, name=f"{self.dataset}/{entry.key}",
             meta={"dataset": self.dataset, "scene": s, "frame_image": i, "frame_cloud": j,
                   "overlap": entry.score, "outdoor": False},
         )
