@@ -206,8 +206,13 @@ def end_all(pid: int, marker: str, cgroup: Path | None = None, rounds: int = 50)
         killed |= set(found)
         time.sleep(0.02)
     for p in killed:  # adopted orphans are our children now: reap them
-        with contextlib.suppress(ChildProcessError, OSError):
-            os.waitpid(p, os.WNOHANG)
+        for _ in range(100):
+            try:
+                if os.waitpid(p, os.WNOHANG)[0]:
+                    break
+            except OSError:  # not our child (or gone): nothing to reap
+                break
+            time.sleep(0.01)
     if cgroup is not None:
         for _ in range(50):
             try:
