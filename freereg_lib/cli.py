@@ -42,8 +42,9 @@ def _parser() -> argparse.ArgumentParser:
     g.add_argument("--virtual", action="store_true", help="try virtual depth cameras even when one is given")
     g.add_argument("--rough-pose", metavar="FILE", help="a rough pose of the image camera in the cloud's frame "
                    "(T_pc_cam, 4 x 4 text): one more virtual camera candidate")
-    g.add_argument("--up", default="auto", help="the cloud's up axis for the virtual cameras: x, y, z, -x, -y, -z")
-    g.add_argument("--views", type=int, default=8, help="virtual camera directions around the up axis")
+    g.add_argument("--up", default="auto", help="the cloud's up axis for the virtual cameras: x, y, z, -x, -y, -z "
+                   "(--up -y and --up=-y both work)")
+    g.add_argument("--views", type=int, default=8, help="virtual camera directions around the up axis (>= 1)")
     g.add_argument("--no-refine", action="store_true", help="do not re-render from the estimated pose")
     m = r.add_argument_group("method")
     m.add_argument("--backend", default="real", choices=("stub", "tiny", "real"),
@@ -53,11 +54,15 @@ def _parser() -> argparse.ArgumentParser:
     m.add_argument("--device", help="cuda, cuda:N or cpu (default: CUDA when present)")
     m.add_argument("--method", choices=("FreeReg", "FreeReg-D", "FreeReg-G"),
                    help="default FreeReg (FreeReg-G with the stub)")
+    m.add_argument("--geometric", default="fpfh", choices=("fpfh", "fcgf"),
+                   help="geometric features: fpfh (Open3D, no weights) or fcgf (the official FCGF checkpoint, "
+                        "<weights-dir>/fcgf/ or --fcgf-checkpoint)")
+    m.add_argument("--fcgf-checkpoint", metavar="FILE", help="the FCGF checkpoint for --geometric fcgf")
     m.add_argument("--solver", default="kabsch", choices=("kabsch", "pnp"))
     m.add_argument("--ransac-iters", type=int, default=50_000, help="the paper's 50000")
-    m.add_argument("--kabsch-scoring", default="official", choices=("official", "matches"),
-                   help="official: Open3D's call, as the paper (~70 s a candidate on a 2-core CPU at 50k); "
-                        "matches: scored by the matches a hypothesis explains (fast)")
+    m.add_argument("--kabsch-scoring", default="official", choices=("official", "open3d"),
+                   help="official: open3d 0.12's algorithm, as the paper ran it (about 1 s at 50k); "
+                        "open3d: the installed Open3D's call (>= 0.15 scores by cloud fitness; minutes on a CPU)")
     m.add_argument("--outdoor", action="store_true", help="the paper's outdoor (KITTI) setting")
     m.add_argument("--seed", type=int, default=0)
     d = r.add_argument_group("data")
@@ -73,11 +78,59 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+# Options whose value may start with "-" (argparse reads "--up -y" as a missing value followed
+# by an unknown option -y): "--up -y" is rewritten to "--up=-y" before parsing.
+_SIGNED_VALUE_OPTIONS = ("--up",)
+
+
+def _join_signed_values(argv: list[str]) -> list[str]:
+    out: list[str] = []
+    it = iter(range(len(argv)))
+    for i in it:
+        tok = argv[i]
+        if tok in _SIGNED_VALUE_OPTIONS and i + 1 < len(argv) and argv[i + 1][:1] == "-" and argv[i + 1] != "--":
+            out.append(f"{tok}={argv[i + 1]}")
+            next(it, None)
+        else:
+            out.append(tok)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = _parser().parse_args(_join_signed_values(argv))
     if args.command == "register":
         return register_command(args)
     return 2  # pragma: no cover (argparse requires a command)
+
+
+# The library's messages speak Python (get_backend's keywords, cfg fields); the command's own
+# flags replace them here, so that what the user reads is what the user can type.
+_FLAG_WORDS = (
+    (r"pass weights_dir=\.\.\. to get_backend \(or set FREEREG_WEIGHTS, or cfg\.extra\['weights_dir'\]\)",
+     "pass --weights-dir FOLDER (or set FREEREG_WEIGHTS)"),
+    (r"pass weights_dir=(['\"])(.*?)\1", r"pass --weights-dir \2"),
+    (r"pass `?weights_dir=`?", "pass --weights-dir "),
+    (r"\bweights_dir\b", "--weights-dir"),
+    (r"cfg\.extra\['fcgf_checkpoint'\]", "--fcgf-checkpoint FILE"),
+    (r"geometric=(['\"])fpfh\1", "--geometric fpfh"),
+    (r"backend=(['\"])(stub|tiny|real|micro)\1", r"--backend \2"),
+    (r"\bdevice=(['\"])(cpu|cuda[:\d]*)\1", r"--device \2"),
+    (r"\bdevice=None\b", "no --device"),
+    (r"cfg\.kabsch_scoring", "--kabsch-scoring"),
+    (r"cfg\.ransac_iters|\bransac_iters\b", "--ransac-iters"),
+    (r"cfg\.geometric", "--geometric"),
+)
+
+
+def in_flags(message: str) -> str:
+    """``message`` with the library's Python spellings (``weights_dir=``, ``backend="stub"``,
+    ``cfg.extra['fcgf_checkpoint']``, ...) replaced by this command's flags."""
+    import re
+
+    for pattern, repl in _FLAG_WORDS:
+        message = re.sub(pattern, repl, message)
+    return message
 
 
 def _fail(msg: str) -> int:
@@ -93,6 +146,8 @@ def register_command(args) -> int:
     from .config import config_for
 
     try:
+        if args.views < 1:
+            return _fail(f"--views must be >= 1 (virtual camera directions around the up axis), got {args.views}")
         if args.demo:
             if args.image or args.cloud:
                 return _fail("give either --demo FOLDER or IMAGE CLOUD, not both")
@@ -113,12 +168,19 @@ def register_command(args) -> int:
                                  "--depth-pose"), gt, args.image_depth, args.depth_scale, args.cloud_scale,
                                  args.outdoor)
         rough = R.read_pose(args.rough_pose, "--rough-pose")
-        name = "kitti" if args.outdoor else "demo"  # indoor: the official config/demo.yaml (ScanNet's)
-        extra = {"weights_dir": args.weights_dir} if args.weights_dir else {}
-        cfg = config_for(name, seed=args.seed, ransac_iters=args.ransac_iters, kabsch_scoring=args.kabsch_scoring,
-                         extra=extra)
         if args.ransac_iters < 1:
             return _fail(f"--ransac-iters must be >= 1, got {args.ransac_iters}")
+        if args.fcgf_checkpoint and args.geometric != "fcgf":
+            return _fail("--fcgf-checkpoint is for --geometric fcgf")
+        name = "kitti" if args.outdoor else "demo"  # indoor: the official config/demo.yaml (ScanNet's)
+        extra = {"weights_dir": args.weights_dir} if args.weights_dir else {}
+        if args.fcgf_checkpoint:
+            extra["fcgf_checkpoint"] = args.fcgf_checkpoint
+        try:
+            cfg = config_for(name, seed=args.seed, ransac_iters=args.ransac_iters,
+                             kabsch_scoring=args.kabsch_scoring, geometric=args.geometric, extra=extra)
+        except (ValueError, TypeError) as exc:
+            return _fail(in_flags(R._one_line(exc)))
     except R.InputError as exc:
         return _fail(str(exc))
 
@@ -126,8 +188,12 @@ def register_command(args) -> int:
 
     try:
         backend = get_backend(args.backend, cfg, device=args.device)
+        if args.geometric == "fcgf":
+            from .geometric import fcgf_checkpoint_path
+
+            fcgf_checkpoint_path(cfg)  # a missing checkpoint stops here, before any model runs
     except (MissingWeightsError, ValueError, RuntimeError) as exc:
-        print(f"freereg register: cannot load the {args.backend} backend:\n{exc}", file=sys.stderr)
+        print(f"freereg register: cannot load the {args.backend} backend:\n{in_flags(str(exc))}", file=sys.stderr)
         return 1
     print(f"image {pair.meta.get('image_path')} ({pair.image_size[1]} x {pair.image_size[0]}), cloud "
           f"{pair.meta.get('cloud_path')} ({len(pair.points)} points)")

@@ -194,9 +194,12 @@ def load_inputs(
 
     Every bad input raises :class:`InputError` with one line naming it.
     """
+    from . import inputs_check as IC
     from .datasets.common import read_depth, read_points, read_rgb
 
-    img = _read(read_rgb, image, "image")
+    cloud_scale = IC.positive(cloud_scale, "--cloud-scale", "the cloud's coordinates are multiplied by it")
+    depth_scale = IC.positive(depth_scale, "--depth-scale", "the depth PNG's value per metre")
+    img = _read(read_rgb, image, "image")  # as stored: an EXIF orientation is not applied (inputs_check)
     H, W = img.shape[:2]
     if K is None:
         raise InputError("missing image intrinsics: give --K fx fy cx cy (pixels) or --intrinsics FILE")
@@ -208,6 +211,8 @@ def load_inputs(
     has_camera = depth_pose is not None
     if depth_K is not None and depth_size is None:
         raise InputError("--depth-K needs --depth-size W H (the depth camera's image size)")
+    if depth_size is not None:
+        IC.depth_size_fits((H, W), depth_size, depth_K)
     size = tuple(int(v) for v in depth_size) if depth_size is not None else (H, W)
     K_dep = _as_K(depth_K, size, "the depth camera intrinsics (--depth-K)") if depth_K is not None else K_img.copy()
     if depth_K is None and depth_size is not None:
@@ -219,6 +224,16 @@ def load_inputs(
         if depth_gt.shape != (H, W):
             raise InputError(f"{image_depth} is {depth_gt.shape[1]} x {depth_gt.shape[0]}; the image is {W} x {H}")
     has_gt = gt_T_cam_pc is not None
+    if has_camera:
+        IC.pose_sees_cloud(cameras.invert(np.asarray(depth_pose, dtype=np.float64)), pts, K_dep, size,
+                           "--depth-pose (the sensor's pose in the cloud's frame, T_pc_sensor)",
+                           "T_sensor_pc (its inverse) as --depth-pose")
+    if has_gt:
+        IC.pose_sees_cloud(np.asarray(gt_T_cam_pc, dtype=np.float64), pts, K_img, (H, W),
+                           "the ground-truth pose (as T_cam_pc)", "--gt-T-cam-pc for --gt-T-pc-cam, or the reverse")
+        if depth_gt is not None:
+            IC.depth_units_against_cloud(depth_gt, pts, K_img, np.asarray(gt_T_cam_pc, dtype=np.float64),
+                                         depth_scale, f"--image-depth {image_depth}")
     if gt_T_cam_pc is None:  # a placeholder the pair needs: the camera at the cloud's centre
         gt_T_cam_pc = cameras.make_pose(np.eye(3), -np.median(pts, axis=0))
     pair = Pair(
@@ -227,7 +242,7 @@ def load_inputs(
         T_cam_pc=np.asarray(gt_T_cam_pc, dtype=np.float64), depth_gt=depth_gt,
         name=f"{Path(image).stem}-{Path(cloud).stem}",
         meta={"dataset": "files", "outdoor": bool(outdoor), "depth_camera": has_camera, "has_gt": has_gt,
-              "image_path": str(image), "cloud_path": str(cloud)},
+              "image_path": str(image), "cloud_path": str(cloud), "notes": [n for n in [IC.exif_note(image)] if n]},
     )
     try:
         pair.validate()
@@ -245,8 +260,22 @@ def load_demo(root: str | Path) -> Pair:
         pair = load_demo_pair(root)
     except (OSError, ValueError) as exc:
         raise InputError(_one_line(exc)) from None
-    pair.meta.update(depth_camera=True, has_gt=True, image_path=str(Path(root) / "source_rgb.png"),
-                     cloud_path=str(Path(root) / "target_pc.ply"))
+    from . import inputs_check as IC
+
+    IC.pose_sees_cloud(pair.T_cam_pc, pair.points, pair.K_image, pair.image_size,
+                       f"{Path(root) / 'just_for_eval' / 'rgb2pc.gt.pose.txt'} (inverted, as T_cam_pc)",
+                       "T_cam_pc where the demo layout wants the RGB camera's pose in the cloud's frame")
+    if pair.depth_gt is not None:
+        from .datasets.demo import DEMO_CAMERAS, read_cameras
+
+        intr = Path(root) / "intrinsics.json"
+        scale = float((read_cameras(intr) if intr.is_file() else DEMO_CAMERAS)["dpt_scale"])
+        IC.depth_units_against_cloud(pair.depth_gt, pair.points, pair.K_image, pair.T_cam_pc, scale,
+                                     str(Path(root) / "just_for_eval" / "source_rgb.gtd.png"),
+                                     f"dpt_scale (in {intr.name})")
+    image_path = Path(root) / "source_rgb.png"
+    pair.meta.update(depth_camera=True, has_gt=True, image_path=str(image_path),
+                     cloud_path=str(Path(root) / "target_pc.ply"), notes=[n for n in [IC.exif_note(image_path)] if n])
     return pair
 
 
@@ -330,7 +359,7 @@ def parse_up(up: str | None, points: np.ndarray) -> tuple[np.ndarray, str]:
 
 def virtual_cameras(points: np.ndarray, K_image: np.ndarray, image_size: tuple[int, int], cfg: FreeRegConfig,
                     rough_T_pc_cam: np.ndarray | None = None, up: str | None = None, n_yaw: int = 8,
-                    max_width: int = VIRTUAL_MAX_WIDTH) -> list[DepthCamera]:
+                    max_width: int = VIRTUAL_MAX_WIDTH, with_origin: bool = True) -> list[DepthCamera]:
     """Candidate depth cameras for a cloud with no sensor pose (module docstring).
 
     All use the image's intrinsics (scaled to at most ``max_width`` pixels wide). Candidates:
@@ -340,6 +369,7 @@ def virtual_cameras(points: np.ndarray, K_image: np.ndarray, image_size: tuple[i
     looking horizontally (perpendicular to ``up``) every ``360 / n_yaw`` degrees; and
     ``behind/yaw<deg>``: the same directions from a point pulled back from the centroid by the
     cloud's horizontal radius of gyration, so that more of the cloud is in view.
+    ``with_origin=False`` leaves ``origin`` out (a re-centred cloud's origin is no sensor's).
     """
     H, W = image_size
     s = min(1.0, max_width / W)
@@ -351,7 +381,7 @@ def virtual_cameras(points: np.ndarray, K_image: np.ndarray, image_size: tuple[i
     seen = (z > cfg.depth_min) & (z < cfg.depth_max)
     with np.errstate(invalid="ignore"):
         seen &= (uv[:, 0] >= 0) & (uv[:, 0] < size[1]) & (uv[:, 1] >= 0) & (uv[:, 1] < size[0])
-    if seen.mean() >= 0.05:
+    if with_origin and seen.mean() >= 0.05:
         out.append(DepthCamera("origin", K, size, np.eye(4),
                                f"the cloud frame's origin ({seen.mean():.0%} of the points in view): the cloud "
                                "may be in its sensor's frame, as the official demo's"))
@@ -430,8 +460,28 @@ def register(
 
     from .backends import get_backend
 
+    from . import inputs_check as IC
+
     say = log or (lambda s: None)
     t0 = time.perf_counter()
+    if int(n_yaw) < 1:
+        raise InputError(f"--views must be >= 1 (virtual camera directions around the up axis), got {n_yaw}")
+    for note in pair.meta.get("notes", []):
+        say(note)
+    # A cloud far from its frame's origin (UTM coordinates) is solved in re-centred coordinates
+    # and the pose restored after: a numerical safeguard (PnP loses degrees at 5,000 km).
+    offset = IC.recentre_offset(pair.points)
+    original = pair
+    if offset is not None:
+        say(f"the cloud lies {np.linalg.norm(offset):.4g} m from its frame's origin: solving in coordinates "
+            f"re-centred on ({', '.join(f'{v:.0f}' for v in offset)}), the pose restored after")
+        pair = dataclasses.replace(pair, points=pair.points - offset, T_pc_sensor=IC.shift_frame(pair.T_pc_sensor,
+                                   offset), T_cam_pc=IC.shift_pose(pair.T_cam_pc, offset))
+        if rough_T_pc_cam is not None:
+            rough_T_pc_cam = IC.shift_frame(rough_T_pc_cam, offset)
+        if isinstance(depth_cameras, (list, tuple)):
+            depth_cameras = [dataclasses.replace(c, T_pc_sensor=IC.shift_frame(c.T_pc_sensor, offset))
+                             for c in depth_cameras]
     cfg = cfg or config_for("demo")
     if isinstance(backend, str):
         backend = get_backend(backend, cfg)
@@ -453,7 +503,8 @@ def register(
         cands = [DepthCamera("given", np.asarray(pair.K_depth), tuple(pair.depth_size), pair.T_pc_sensor,
                              "the cloud's own depth camera (its sensor pose)", virtual=False)]
     elif depth_cameras == "virtual":
-        cands = virtual_cameras(pair.points, pair.K_image, pair.image_size, cfg, rough_T_pc_cam, up, n_yaw)
+        cands = virtual_cameras(pair.points, pair.K_image, pair.image_size, cfg, rough_T_pc_cam, up, n_yaw,
+                                with_origin=offset is None)
         say(f"no depth camera given: trying {len(cands)} virtual depth cameras, keeping the one whose pose has "
             "the most RANSAC inliers")
     else:
@@ -521,9 +572,15 @@ def register(
     scale = float(res.scale) if res is not None else math.nan
     ok, why = _verdict(res, best, solver, min_inliers, min_inlier_ratio, max_scale)
     T = res.T_cam_pc if res is not None and res.success else np.full((4, 4), np.nan)
+    q_out = best.get("_q", pair)
+    if offset is not None:  # back to the cloud's own coordinates
+        T = IC.unshift_pose(T, offset)
+        cam = dataclasses.replace(cam, T_pc_sensor=IC.unshift_frame(cam.T_pc_sensor, offset))
+        q_out = dataclasses.replace(q_out, points=original.points, T_pc_sensor=cam.T_pc_sensor,
+                                    T_cam_pc=original.T_cam_pc)
     errors: dict = {}
     if pair.meta.get("has_gt", True):
-        re, te = metrics.pose_errors(T, pair.T_cam_pc) if res is not None and res.success else (math.nan, math.nan)
+        re, te = metrics.pose_errors(T, original.T_cam_pc) if res is not None and res.success else (math.nan, math.nan)
         errors = {"RE": re, "TE": te, "registered_gt": metrics.registered(re, te, cfg.rr_rot_deg, cfg.rr_trans_m)}
         if pair.depth_gt is not None and best.get("_m") is not None:
             errors.update(_inliers_gt(best["_q"], best["_feats"], best["_m"], cfg, cam.virtual))
@@ -532,7 +589,7 @@ def register(
                                                       and res.success else ""))
     reg = Registration(T, ok, result, method, solver, getattr(backend, "label", str(backend)), n_m, n_in, scale, cam,
                        [{k: v for k, v in r.items() if not k.startswith("_")} | {"chosen": r is best} for r in runs],
-                       best.get("_q", pair), best.get("_feats"), best.get("_m"), res, errors,
+                       q_out, best.get("_feats"), best.get("_m"), res, errors,
                        time.perf_counter() - t0)
     say(result)
     if errors:
@@ -678,80 +735,6 @@ def _json_matrix(T: np.ndarray):
 
 
 # --------------------------------------------------------------------------------------
-# Writing a pair as files (the notebook's and the tests' inputs).
+# Writing a pair as files (the notebook's and the tests' inputs): freereg_lib.pair_files.
 
-def write_ply(path: str | Path, points: np.ndarray) -> Path:
-    """``points (N, 3)`` as a binary little-endian ``.ply`` (float32 x, y, z)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    pts = np.ascontiguousarray(points, dtype="<f4")
-    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(pts)}\nproperty float x\n"
-              "property float y\nproperty float z\nend_header\n")
-    path.write_bytes(header.encode() + pts.tobytes())
-    return path
-
-
-def _write_image_and_depth(pair: Pair, image_path: Path, depth_path: Path | None) -> None:
-    import cv2
-
-    image_path.parent.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(image_path), cv2.cvtColor(pair.image, cv2.COLOR_RGB2BGR))
-    if depth_path is not None and pair.depth_gt is not None:
-        depth_path.parent.mkdir(parents=True, exist_ok=True)
-        cv2.imwrite(str(depth_path), np.clip(np.round(pair.depth_gt * 1000), 0, 65534).astype(np.uint16))
-
-
-def write_demo_layout(pair: Pair, root: str | Path) -> Path:
-    """``pair`` in the official demo layout (:mod:`freereg_lib.datasets.demo`): the cloud in its
-    sensor's frame (``T_pc_sensor`` applied), the image, ``intrinsics.json``, and the ground
-    truth under ``just_for_eval/`` (the true depth in millimetres)."""
-    root = Path(root)
-    (root / "just_for_eval").mkdir(parents=True, exist_ok=True)
-    _write_image_and_depth(pair, root / "source_rgb.png", root / "just_for_eval" / "source_rgb.gtd.png")
-    write_ply(root / "target_pc.ply", cameras.transform(cameras.invert(pair.T_pc_sensor), pair.points))
-    (H, W), (Hd, Wd) = pair.image_size, pair.depth_size
-    (root / "intrinsics.json").write_text(json.dumps({
-        "rgb_intrinsic": np.asarray(pair.K_image).tolist(), "dpt_intrinsic": np.asarray(pair.K_depth).tolist(),
-        "rgb_size": [W, H], "dpt_size": [Wd, Hd], "dpt_scale": 1000.0}, indent=1))
-    # rgb2pc: the RGB camera in the cloud's (sensor's) frame.
-    np.savetxt(root / "just_for_eval" / "rgb2pc.gt.pose.txt", cameras.invert(pair.T_cam_pc @ pair.T_pc_sensor))
-    return root
-
-
-def write_user_files(pair: Pair, folder: str | Path, T_world_pc: np.ndarray | None = None) -> dict[str, Path]:
-    """``pair`` as a user would bring it: ``image.png``, ``cloud.ply`` (in a frame of your choice,
-    ``T_world_pc`` applied to the pair's cloud; **no** sensor pose), ``intrinsics.json`` (fx, fy,
-    cx, cy), ``image_depth.png`` (mm) and ``gt_T_pc_cam.txt`` (the camera's pose in the cloud's
-    new frame). Returns the paths by name."""
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    T = np.eye(4) if T_world_pc is None else np.asarray(T_world_pc, dtype=np.float64)
-    paths = {"image": folder / "image.png", "cloud": folder / "cloud.ply", "intrinsics": folder / "intrinsics.json",
-             "image_depth": folder / "image_depth.png", "gt_T_pc_cam": folder / "gt_T_pc_cam.txt"}
-    _write_image_and_depth(pair, paths["image"], paths["image_depth"])
-    write_ply(paths["cloud"], cameras.transform(T, pair.points))
-    K = np.asarray(pair.K_image)
-    paths["intrinsics"].write_text(json.dumps({"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}))
-    np.savetxt(paths["gt_T_pc_cam"], T @ cameras.invert(pair.T_cam_pc))
-    if pair.depth_gt is None:
-        del paths["image_depth"]
-    return paths
-
-
-def downscale_pair(pair: Pair, factor: float = 0.5, seed: int = 0) -> Pair:
-    """A smaller copy of ``pair`` for quick runs: image, true depth and depth camera scaled by
-    ``factor`` (intrinsics with them), the cloud randomly thinned to ``factor**2`` of its points."""
-    import cv2
-
-    H, W = pair.image_size
-    h, w = max(1, round(H * factor)), max(1, round(W * factor))
-    Hd, Wd = pair.depth_size
-    hd, wd = max(1, round(Hd * factor)), max(1, round(Wd * factor))
-    keep = np.sort(np.random.default_rng(seed).choice(len(pair.points), max(1, int(len(pair.points) * factor ** 2)),
-                                                      replace=False))
-    return dataclasses.replace(
-        pair, image=cv2.resize(pair.image, (w, h), interpolation=cv2.INTER_AREA),
-        K_image=cameras.scale_intrinsics(pair.K_image, w / W, h / H), points=pair.points[keep],
-        K_depth=cameras.scale_intrinsics(pair.K_depth, wd / Wd, hd / Hd), depth_size=(hd, wd),
-        depth_gt=None if pair.depth_gt is None else cv2.resize(pair.depth_gt, (w, h), interpolation=cv2.INTER_NEAREST),
-        sensor_depth=None, image_ids=None, point_ids=None, meta=dict(pair.meta))
+from .pair_files import downscale_pair, write_demo_layout, write_ply, write_user_files  # noqa: E402,F401

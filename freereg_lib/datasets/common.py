@@ -54,16 +54,18 @@ def _truncated(path: Path) -> str:
 
 
 def read_rgb(path: str | Path) -> np.ndarray:
-    """An image file as ``(H, W, 3) uint8`` RGB.
+    """An image file as ``(H, W, 3) uint8`` RGB, its pixels as stored.
 
     A truncated JPEG or PNG is refused (OpenCV would silently return an image whose missing
-    part is grey), naming the file.
+    part is grey), naming the file. An EXIF orientation tag is **not** applied (OpenCV would
+    rotate the photo but never its depth map, whose PNG has no such tag): intrinsics and depth
+    describe the stored pixel grid, so both views stay as stored.
     """
     path = _exists(path)
     cut = _truncated(path)
     if cut:
         raise ValueError(f"{path} is {cut}: the file was cut short (an interrupted copy or download); copy it again")
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if img is None:
         raise ValueError(f"cannot decode image {path} (expected a PNG or JPEG RGB image)")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)

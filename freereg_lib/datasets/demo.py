@@ -81,14 +81,24 @@ def read_ply_points(path: str | Path) -> np.ndarray:
         raise ValueError(f"{path}: vertices have no x, y, z properties")
     if count == 0:
         raise ValueError(f"{path} holds no vertex (an empty point cloud)")
+    only_vertices = sum(words[0] == "element" for words in elements) == 1
     try:
         if fmt == "ascii":
-            table = np.loadtxt(body.decode("ascii").splitlines()[:count], ndmin=2)
+            lines = [ln for ln in body.decode("ascii").splitlines() if ln.strip()]
+            if only_vertices and len(lines) > count:
+                raise ValueError(f"the header declares {count} vertices but the body holds {len(lines)} lines of "
+                                 "them (a header count left smaller than its body would read part of the cloud)")
+            table = np.loadtxt(lines[:count], ndmin=2)
             cols = [n for n, _ in props]
             xyz = table[:, [cols.index("x"), cols.index("y"), cols.index("z")]]
         elif fmt in ("binary_little_endian", "binary_big_endian"):
             order = "<" if fmt == "binary_little_endian" else ">"
-            rec = np.frombuffer(body, dtype=np.dtype([(n, order + t) for n, t in props]), count=count)
+            dtype = np.dtype([(n, order + t) for n, t in props])
+            if only_vertices and len(body) >= (count + 1) * dtype.itemsize:
+                raise ValueError(f"the header declares {count} vertices but the body holds "
+                                 f"{len(body) // dtype.itemsize} ({len(body)} bytes of {dtype.itemsize}; a header count "
+                                 "left smaller than its body would read part of the cloud)")
+            rec = np.frombuffer(body, dtype=dtype, count=count)
             xyz = np.stack([rec["x"], rec["y"], rec["z"]], axis=1)
         else:
             raise ValueError(f"unknown format {fmt!r}")
