@@ -77,8 +77,12 @@ def test_no_edge_filter_on_the_projected_cloud():
     pair = _sensor_pair(d)
     pair.sensor_depth = None
     pair.points = pts
-    view = pipeline.depth_view(pair, FreeRegConfig(densify="none"))
+    view = pipeline.depth_view(pair, FreeRegConfig(densify="none", cloud_projection="round"))
     assert np.allclose(view.raw, d)
+    # The official projection (truncation of K X / (z + 1e-5)) puts a pixel centre's point on the
+    # pixel up and to the left: the map moves by one pixel, the step edge is still all there.
+    view = pipeline.depth_view(pair, FreeRegConfig(densify="none"))
+    assert np.allclose(view.raw[:-1, :-1], d[1:, 1:]) and (view.raw[:-1, :-1] > 0).all()
 
 
 class _FixedMono:
@@ -156,8 +160,12 @@ def test_evaluation_lifts_the_depth_side_with_its_true_depth():
         geo_depth=None, mono_depth=d, view=pipeline.DepthView(d, np.full_like(d, 2.5), np.full(d.shape, -1), None))
     m = pipeline.Matches(np.arange(4), np.arange(4))
     res = pose.PoseResult(np.eye(4), True, "pnp")
-    scores = pipeline.evaluate(pair, feats, m, res, FreeRegConfig())
+    scores = pipeline.evaluate(pair, feats, m, res, FreeRegConfig(densify="none"))  # 3DMatch: the raw map
     assert scores["IN"] == 3 and scores["IR"] == 1.0  # the hole's match is not evaluable
+    assert scores["n_evaluable"] == 3
+    # A dataset that densifies and has no truth file is scored on its densified map (official dpt_gtd).
+    dense = pipeline.evaluate(pair, feats, m, res, FreeRegConfig(densify="fast"))
+    assert dense["n_evaluable"] == 3 and dense["IN"] == 0  # 0.5 m off: no match within 0.3 m
 
 
 def _outlier_problem(seed=0, n=300, outliers=0.6, scale=1.0):
@@ -288,6 +296,8 @@ def test_fill_in_multiscale_is_ip_basic_step_by_step():
         cols = rng.random(90) < 0.6
         d[r, cols] = rng.choice([5.0, 22.0, 45.0]) + rng.normal(scale=0.3, size=cols.sum())
     d[40:, 70:] = 0.0  # a large hole below the top measurement
-    ours = densify.fill_in_multiscale(d)
+    ours = densify.fill_in_multiscale(d, hole_value=0.0)  # IP-Basic's own ending: holes stay empty
     assert np.array_equal(ours, _multiscale_by_the_steps(d))
     assert not (ours[:18] > 0).any() and (ours[42:, 72:84] > 0).all()
+    official = densify.fill_in_multiscale(d)  # the official copy writes 255 m into them
+    assert (official[:18] == 255.0).all() and np.array_equal(official[ours > 0], ours[ours > 0])

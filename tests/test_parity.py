@@ -215,3 +215,33 @@ def test_demo_depth_side_is_scored_with_target_dpt_gtd(tmp_path):
     res = dataclasses.replace(pipeline.pose.PoseResult(np.eye(4), False, "pnp"))
     row = pipeline.evaluate(pair, feats, m, res, cfg)
     assert row["n_evaluable"] > n_cloud
+
+
+# --------------------------------------------------------------------------------------
+# The paper's setting on the real backend.
+
+def test_table1_grid_runs_fcgf_and_the_official_kabsch():
+    from freereg_lib import batch
+
+    grid = batch.load_grid(ROOT / "freereg_lib/data/grids/table1.yaml")
+    assert len(grid.jobs) == 3
+    for job in grid.jobs:
+        p = job.params
+        assert (p["backend"], p["geometric_method"], p["kabsch_scoring"]) == ("real", "fcgf", "official")
+        cfg = config_for(p["dataset"], geometric=p["geometric_method"], kabsch_scoring=p["kabsch_scoring"])
+        assert (cfg.geometric, cfg.kabsch_scoring) == ("fcgf", "official")
+
+
+def test_benchmark_notebook_picks_fcgf_on_the_real_backend():
+    import json
+
+    nb = json.loads((ROOT / "notebooks/04_benchmark.ipynb").read_text())
+    params = "".join(next(c for c in nb["cells"] if "parameters" in c.get("metadata", {}).get("tags", []))["source"])
+    assert 'geometric_method: "Optional[str]" = None' in params and 'kabsch_scoring: str = "official"' in params
+    setup = "".join(next(c for c in nb["cells"] if "cfg = config_for(" in "".join(c["source"]))["source"])
+    env = {"geometric_method": None, "backend_name": "real"}
+    exec(setup.split("cfg = config_for(")[0].split("backend_name = backend\n", 1)[1], env)
+    assert env["geometric_method"] == "fcgf"
+    env = {"geometric_method": None, "backend_name": "micro"}
+    exec(setup.split("cfg = config_for(")[0].split("backend_name = backend\n", 1)[1], env)
+    assert env["geometric_method"] == "fpfh"
