@@ -31,11 +31,14 @@ The grid file (YAML)::
                                           # (freereg_lib.cluster.DaskOptions); flags override it
 
 The jobs are notebooks x sets x grid points; a job's parameters are ``base | set | point``.
+A mapping that repeats a key is refused, and so is a value outside the range of the config
+field it sets (:func:`freereg_lib.params.range_problem`).
 A relative notebook path is looked up in the working directory, then beside the grid file.
 
 What lands on disk, under ``<runs-dir>/<name>/``::
 
     grid.yaml                    copy of the grid last run
+    .runner.lock                 flock-ed by the runner while it runs: a second runner stops at once
     <job-id>/job.json            the job's notebook and parameters
     <job-id>/notebook.ipynb      the executed notebook (kept when it fails)
     <job-id>/out/                the notebook's ``out_dir``: pairs.csv, results.csv, config.json
