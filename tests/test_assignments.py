@@ -3,8 +3,11 @@
 * ``make`` writes student notebooks that hold no solution code: every ``solution`` cell keeps
   its functions' signatures and docstrings and raises ``NotImplementedError`` with a hint; the
   ``check`` cells and everything else stay; outputs are stripped.
-* The autograder gives the answer key (the notebooks themselves) full marks, the untouched
-  student version zero, and partial, broken, looping or exiting work its due without crashing.
+* The autograder (issue 41: the solution cells run in a student process of their own, the
+  score is computed in the grading process) gives the answer key (the notebooks themselves)
+  full marks, the untouched student version zero, and partial, broken, looping or exiting work
+  its due without crashing.
+* ``dist`` hands out the library and the student notebooks, never the answer key.
 * A student notebook filled from the key runs top to bottom with papermill; left unfilled it
   also reaches its last cell, each unsolved exercise's check saying so (issue 17).
 """
@@ -25,6 +28,7 @@ nbformat = pytest.importorskip("nbformat")
 papermill = pytest.importorskip("papermill")
 
 from freereg_lib import assignments as A  # noqa: E402
+from freereg_lib.teaching.notebooks import _assert_no_solution  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 NOTEBOOKS = ROOT / "notebooks"
@@ -146,6 +150,32 @@ def test_stubs_keep_signatures_docstrings_and_checks_and_raise_a_hint(student_di
     assert "np.minimum.at" in src
     src = _solution_cells(_student(student_dir, "03_fusion"))[1].source
     assert "Hint: [w * f_d / |f_d|" in src
+
+
+def test_dist_hands_out_the_library_and_student_notebooks_without_any_answer_key(tmp_path):
+    archive = A.dist(tmp_path / "handout", zip_file=True)
+    out = tmp_path / "handout"
+    assert archive == tmp_path / "handout.zip" and archive.is_file()
+    assert sorted(p.name for p in (out / "notebooks").glob("*.ipynb")) == sorted(p.name for p in NOTEBOOKS.glob("*.ipynb"))
+    assert (out / "freereg_lib" / "features.py").is_file() and (out / "environment").is_dir()
+    assert not (out / "tests").exists() and not (out / "assignments").exists()
+    assert not list(out.rglob("__pycache__"))
+    for stem in WITH_EXERCISES:  # the notebooks are the student versions: stubs, not solutions
+        student = nbformat.read(out / "notebooks" / f"{stem}.ipynb", as_version=4)
+        assert student.metadata[A.METADATA_KEY]["notebook"] == stem
+        for cell in _solution_cells(student):
+            assert "raise NotImplementedError" in cell.source
+        solution = set().union(*(_body_lines(c.source) for c in _solution_cells(_key(stem))))
+        elsewhere = _code_lines(c for c in _key(stem).cells if c not in _solution_cells(_key(stem)))
+        assert not (solution - elsewhere) & _code_lines(student.cells), stem
+    import zipfile
+
+    names = zipfile.ZipFile(archive).namelist()
+    assert "handout/notebooks/03_fusion.ipynb" in names and not any("/tests/" in n for n in names)
+    # The last check of dist refuses a student version that still holds a solution line.
+    key = _key("03_fusion")
+    with pytest.raises(AssertionError, match="solution line"):
+        _assert_no_solution(key, key, "03_fusion.ipynb")
 
 
 def test_stub_source_handles_hint_comments_decorators_and_one_liners():
