@@ -323,20 +323,26 @@ def test_table1_grid_offers_the_freereg_ft_job():
 # run and print, not register).
 
 def test_check_weights_runs_the_demo_with_the_tiny_backend(tmp_path, capsys):
+    """The chain runs and prints, scored with the demo's truth files; random weights cannot
+    register the demo, so the command exits 3 and says why."""
     from freereg_lib.check_weights import main
 
-    from test_loaders import make_demo
+    from test_loaders import POSES, make_demo, render, write_depth
 
-    demo, *_ = make_demo(tmp_path / "demo", rgb_size=(120, 160), dpt_size=(60, 80))
+    demo, _, K_dpt, _ = make_demo(tmp_path / "demo", rgb_size=(120, 160), dpt_size=(60, 80))
+    write_depth(demo / "just_for_eval" / "target_dpt.gtd.png", render(K_dpt, POSES[1], (60, 80)))
     rc = main(["--demo", str(demo), "--backend", "tiny", "--device", "cpu", "--ransac-iters", "200",
                "--ddim-steps", "2"])
-    out = capsys.readouterr().out
-    assert rc == 0, out
+    captured = capsys.readouterr()
+    out, err = captured.out, captured.err
+    assert rc == 3, out + err
     assert "backend: tiny backend" in out and "dtype: float32" in out
     assert "random init (seed 0)" in out and "FPFH (Open3D): no weights" in out
     assert f"demo pair: {demo}" in out and "RANSAC iterations 200, DDIM steps 2" in out
+    assert "Kabsch scoring 'official'" in out
+    assert "scored with: depth side just_for_eval/target_dpt.gtd.png (dense truth)" in out
     header = next(ln for ln in out.splitlines() if ln.startswith("method"))
-    for field in ("IR", "IN", "RE (deg)", "TE (m)", "registered at (20 deg, 0.5 m)"):
+    for field in ("IR", "IN", "RE (deg)", "TE (m)", "registered at (20 deg, 0.5 m)", "evaluable"):
         assert field in header
     rows = [ln.split() for ln in out.splitlines() if ln.startswith("FreeReg ")]
     assert [r[1] for r in rows] == ["kabsch", "pnp"]
@@ -344,7 +350,19 @@ def test_check_weights_runs_the_demo_with_the_tiny_backend(tmp_path, capsys):
         assert int(r[2]) > 0  # features were extracted and matched (the chain ran)
         float(r[3]), float(r[5]), float(r[6])  # IR, RE, TE print as numbers (nan when failed)
         assert r[7] in ("yes", "no")
-    assert "numbers mean nothing" in out
+    assert rows[0][7] == "no"
+    assert "a correct installation: FreeReg + kabsch registers the demo (RE < 20 deg and TE < 0.5 m)" in out
+    assert "NOT REGISTERED: FreeReg + kabsch did not register the demo" in err
+    assert "random weights, which cannot register it" in err
+
+
+def test_check_weights_defaults_to_fcgf_on_the_real_backend():
+    import inspect
+
+    from freereg_lib import check_weights
+
+    src = inspect.getsource(check_weights.main)
+    assert 'args.geometric or ("fcgf" if args.backend == "real" else "fpfh")' in src
 
 
 def test_check_weights_prints_hashes_of_real_files(weights, fake_loaders, monkeypatch, tmp_path, capsys):
@@ -360,10 +378,19 @@ def test_check_weights_prints_hashes_of_real_files(weights, fake_loaders, monkey
     (weights / "zoedepth-nyu" / "config.json").write_text("{}")
     (weights / "zoedepth-nyu" / "model.safetensors").write_bytes(b"zoe")
     monkeypatch.setattr("freereg_lib.backends.zoedepth.load_real_zoedepth", lambda path, device: object())
+    # FCGF is checked too (the paper's geometric features, the default on the real backend).
+    rc = check_weights.main(["--demo", str(tmp_path / "no_demo"), "--weights-dir", str(weights), "--device", "cpu"])
+    out = capsys.readouterr()
+    assert rc == 1 and "FCGF checkpoint not found" in out.err and "2019-08-19_06-17-41.pth" in out.err
+    (weights / "fcgf").mkdir()
+    (weights / "fcgf" / "2019-08-19_06-17-41.pth").write_bytes(b"fcgf")
+    monkeypatch.setattr("freereg_lib.backends.fcgf.load_fcgf", lambda path, *a, **k: object())
     rc = check_weights.main(["--demo", str(tmp_path / "no_demo"), "--weights-dir", str(weights), "--device", "cpu"])
     out = capsys.readouterr()
     assert rc == 1 and "FAILED to load the demo pair" in out.err
     text = out.out
+    assert f"FCGF ResUNetBN2C: {weights / 'fcgf' / '2019-08-19_06-17-41.pth'}" in text
+    assert hashlib.sha256(b"fcgf").hexdigest() in text
     assert "Stable Diffusion v1.5 UNet: stable-diffusion-v1-5/stable-diffusion-v1-5 at" in text
     assert "variant non_ema; dtype float32" in text
     assert f"{weights / 'stable-diffusion-v1-5' / UNET_NON_EMA}  sha256 {hashlib.sha256(b'non-ema').hexdigest()}" in text
