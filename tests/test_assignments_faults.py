@@ -209,3 +209,22 @@ def test_in_the_student_process_the_reference_stays_altered_however_it_is_reache
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0 and "altered 5" in proc.stdout, proc.stderr[-2000:]
     assert abs(importlib.import_module("freereg_lib.features").fuse(np.eye(2), np.eye(2), 0.5)[0, 0] - 0.5) < 1e-4
+
+
+def test_every_exercise_refuses_the_altered_reference_and_accepts_the_true_one():
+    """Scored by the grader: the reference's own answers are full marks; the same calls made where
+    the references answer altered (as in a student's process) are refused, exercise by exercise."""
+    from freereg_lib.teaching import grader, student
+    from freereg_lib.teaching.exercises import EXERCISES
+
+    prepared = grader.prepare(seed=3)
+    refs = sorted({r for e in EXERCISES.values() for r in e.refs})
+    for name, ex in EXERCISES.items():
+        def answers():
+            return [[student.answer(ex.reference, tuple(a), None) for a in case] for case in prepared.inputs[name]]
+
+        honest = grader.score_exercise(ex, prepared, answers())
+        assert honest["score"] == ex.max_points and honest["status"] == "ok", honest
+        with poison.altered(refs, prepared.poison_key):
+            cheat = grader.score_exercise(ex, prepared, answers())
+        assert cheat["score"] == 0 and cheat["status"] == "refused", (name, cheat["message"])

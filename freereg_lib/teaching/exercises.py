@@ -252,7 +252,7 @@ def _ref_kabsch(src, dst) -> np.ndarray:
 def _check_pose(got, want) -> None:
     got = np.asarray(got, dtype=np.float64)
     assert got.shape == (4, 4), f"expected a 4 x 4 transform, got shape {got.shape}"
-    _assert_close(got[3], [0, 0, 0, 1], "last row of the transform")
+    _assert_close(got[3], np.asarray(want)[3], "last row of the transform")  # [0, 0, 0, 1]
     _assert_close(got, want, "transform", atol=1e-6)
 
 
