@@ -15,12 +15,13 @@ from typing import Iterable
 
 import numpy as np
 
-from . import cameras, densify, keypoints, matching, metrics, pose, projection
+from . import baseline, cameras, densify, keypoints, matching, metrics, pose, projection
 from .config import FreeRegConfig
 from .pair import Pair
 
-# Method name -> fusion weight w of the diffusion part (None: the config's fusion_w).
-METHODS = {"FreeReg-D": 1.0, "FreeReg-G": 0.0, "FreeReg": None}
+# Method name -> fusion weight w of the diffusion part (None: the config's fusion_w; NaN: no
+# feature at all, the position-only baseline of freereg_lib.baseline).
+METHODS = {"FreeReg-D": 1.0, "FreeReg-G": 0.0, "FreeReg": None, baseline.METHOD: baseline.W}
 DEFAULT_VARIANTS = (
     ("FreeReg-D", "pnp"),
     ("FreeReg-G", "kabsch"),
@@ -456,9 +457,11 @@ def variant_rows(pair: Pair, feats: PairFeatures | Exception, cfg: FreeRegConfig
     matches_by_w: dict[float, Matches] = {}
     for (mth, sol), w in zip(variants, ws):
         try:
-            if w not in matches_by_w:
-                matches_by_w[w] = match(feats, w, cfg.match_device)
-            m = matches_by_w[w]
+            key = mth if mth == baseline.METHOD else w
+            if key not in matches_by_w:
+                matches_by_w[key] = (baseline.position_matches(feats, pair.image_size, pair.depth_size)
+                                     if mth == baseline.METHOD else match(feats, w, cfg.match_device))
+            m = matches_by_w[key]
             res = solve(pair, feats, m, cfg, sol)
             scores = evaluate(pair, feats, m, res, cfg)
             rows.append(_row(pair, mth, sol, w, len(m), res, "" if res.success else res.reason, scores))

@@ -422,8 +422,10 @@ def choose_method(backend, pair: Pair, method: str | None) -> tuple[str, str]:
             return "FreeReg-G", ("the stub backend has diffusion features only for synthetic scenes: FreeReg-G "
                                  "(geometric features on monocular depth and on the cloud)")
         return "FreeReg", "FreeReg (diffusion + geometric features, w = 0.5)"
-    if method not in pipeline.METHODS:
-        raise InputError(f"unknown method {method!r}; expected one of {list(pipeline.METHODS)}")
+    from .baseline import METHOD as BASELINE
+
+    if method not in pipeline.METHODS or method == BASELINE:  # the baseline is for benchmarks, not a registration
+        raise InputError(f"unknown method {method!r}; expected one of {[m for m in pipeline.METHODS if m != BASELINE]}")
     if stub_blind and method != "FreeReg-G":
         raise InputError(f"the stub backend cannot run {method} on real images (its diffusion features need a "
                          "synthetic scene's class ids): use --method FreeReg-G, or --backend tiny / real")
