@@ -111,7 +111,7 @@ if os.fork() == 0:  # a child in a session of its own, keeping the marker
     os.setsid()
     time.sleep(300)
     os._exit(0)
-subprocess.Popen(["sleep", "300"], env={}, start_new_session=True)  # no marker, no session
+subprocess.Popen(["sleep", "4242"], env={}, start_new_session=True)  # no marker, no session
 """ + WRONG
 
 
@@ -127,7 +127,21 @@ def _marked() -> list[int]:
     return found
 
 
-def test_six_cheats_score_zero_the_honest_student_full_marks_and_nothing_survives(tmp_path, capsys):
+def _sleepers() -> list[int]:
+    """The escaping student's ``sleep 4242``, wherever it is."""
+    found = []
+    for pid in sandbox._user_pids():
+        try:
+            if Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")[:2] == [b"sleep", b"4242"]:
+                found.append(pid)
+        except OSError:
+            pass
+    return found
+
+
+def test_six_cheats_score_zero_the_honest_student_full_marks_and_nothing_survives(tmp_path, capsys, monkeypatch):
+    # No cgroup, even where the grader could make one: the scan alone must find every leftover.
+    monkeypatch.setattr(sandbox, "make_cgroup", lambda token: None)
     mnn = _key_source("student_mutual_nn")
     students = {
         "forges": _student(tmp_path / "forges", FORGES),
@@ -163,5 +177,5 @@ def test_six_cheats_score_zero_the_honest_student_full_marks_and_nothing_survive
         assert results["runs_key"]["confined"] is True
         assert fuse["runs_key"]["status"] == "missing" and "PermissionError" in fuse["runs_key"]["message"]
     assert results["escapes"]["leftover_processes_killed"] >= 2
-    assert not _marked(), "a student's process survived the grading"
+    assert not _marked() and not _sleepers(), "a student's process survived the grading"
     assert "Summary" in out and "refused" in out

@@ -186,7 +186,10 @@ def grade(path: str | Path, prepared: Prepared | None = None, timeout: float = C
     job = Path(tempfile.mkdtemp(prefix="freereg_grade_"))
     marker = secrets.token_hex(8)
     try:
-        run = _run_student(job, files, wanted, prepared, marker, timeout, limit, memory_mb, confine)
+        if wanted:
+            run = _run_student(job, files, wanted, prepared, marker, timeout, limit, memory_mb, confine)
+        else:  # nothing to grade: no process
+            run = {"status": "graded", "ended": "", "killed": 0}
         loaded = _read_answers(job / "answers" / "loaded.npz")
         exercises = []
         for name in wanted:
@@ -288,6 +291,17 @@ def grade_all(paths: list[str | Path], timeout: float = CASE_TIMEOUT_S, limit: f
     each student finishes) have one entry per path, whatever happened to the others."""
     prepared = prepare(seed)
     results = []
+    sandbox.guard_grader(True)
+    try:
+        _grade_each(paths, prepared, results, timeout, limit, memory_mb, json_path, verbose, print_table, confine)
+    finally:
+        sandbox.guard_grader(False)
+    if print_table and len(results) > 1:
+        print("\n" + summary(results))
+    return results
+
+
+def _grade_each(paths, prepared, results, timeout, limit, memory_mb, json_path, verbose, print_table, confine):
     for i, path in enumerate(paths):
         if print_table and i:
             print()
@@ -304,9 +318,6 @@ def grade_all(paths: list[str | Path], timeout: float = CASE_TIMEOUT_S, limit: f
         sys.stdout.flush()
         if json_path:
             _write_json(Path(json_path), results if len(paths) > 1 else results[0])
-    if print_table and len(results) > 1:
-        print("\n" + summary(results))
-    return results
 
 
 def summary(results: list[dict]) -> str:

@@ -114,6 +114,14 @@ def confine(read: list[Path], write: list[Path], read_dir_only: list[Path] = ())
 # --------------------------------------------------------------------------------------
 # The grader's side.
 
+def guard_grader(on: bool) -> None:
+    """While grading, this process is not dumpable: a process of the same user cannot ptrace it
+    or read its memory (Landlock forbids that already; this covers systems without it)."""
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(OSError, AttributeError):
+            _libc().prctl(4, int(not on), 0, 0, 0)  # PR_SET_DUMPABLE
+
+
 def subreaper(on: bool) -> None:
     """Orphans of the student's processes are re-parented to this process instead of init."""
     if sys.platform.startswith("linux"):
@@ -158,6 +166,8 @@ def _stat(pid: int) -> tuple[int, int, int] | None:
 def _user_pids() -> list[int]:
     uid = os.getuid()
     pids = []
+    if not os.path.isdir("/proc"):  # no /proc (macOS): the session and group kill are what there is
+        return pids
     for entry in os.listdir("/proc"):
         if entry.isdigit():
             with contextlib.suppress(OSError):

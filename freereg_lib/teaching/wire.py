@@ -116,7 +116,6 @@ def load(path: str | Path, series: bool = False, max_bytes: int = MAX_BYTES) -> 
         if a.dtype.kind not in _KINDS:
             raise WireError(f"{path.name}: array {k} of dtype {a.dtype} is not numbers")
     try:
-        structure = json.loads(meta.tobytes().decode())
-    except (UnicodeDecodeError, ValueError) as e:
-        raise WireError(f"{path.name}: structure is not JSON ({e})") from None
-    return decode(structure, arrays, series)
+        return decode(json.loads(meta.tobytes().decode()), arrays, series)
+    except (UnicodeDecodeError, ValueError, RecursionError) as e:
+        raise WireError(f"{path.name}: structure is not JSON of the format ({str(e)[:120]})") from None
