@@ -77,6 +77,11 @@ class FreeRegConfig:
     # fill_in_multiscale's remaining holes: the official 255 m (a KITTI hint reads them "far");
     # 0 leaves them empty (IP-Basic's own behaviour, "no measurement").
     multiscale_hole_m: float = ranged(255.0, "[0, inf)")
+    # The official pipeline writes the densified map as a uint16 PNG (depth x depth_png_scale,
+    # truncated) and reads it back; True does the same round trip (up to 1 mm lower indoors,
+    # 1/256 m on KITTI), False keeps the float map.
+    dense_png: bool = True
+    depth_png_scale: float = ranged(1000.0, "(0, inf)")
     # Geometric features.
     geometric: str = "fpfh"  # "fpfh" | "fcgf"
     voxel_size: float = ranged(0.025, "(0, inf)")  # FCGF's voxel (the paper's)
@@ -153,6 +158,7 @@ def config_for(dataset: str, kitti_trans_threshold: float = 3.0, **changes) -> F
             depth_max=80.0,
             edge_filter_m=1.0,
             cloud_far_m=80.0,
+            depth_png_scale=256.0,
             cloud_near_m=0.5,
             voxel_size=0.3,
             fpfh_voxel=0.5,

@@ -187,3 +187,9 @@ def dense_png(depth_png: np.ndarray, depth_scale: float, method: str) -> np.ndar
     d = (np.asarray(depth_png, dtype=np.float64) / depth_scale).astype(np.float32)
     dense = densify(d, method).astype(np.float32)
     return (dense * np.float32(depth_scale)).astype(np.uint16)
+
+
+def png_round_trip(depth: np.ndarray, depth_scale: float) -> np.ndarray:
+    """``depth`` in metres as the official pipeline reads it back from its uint16 PNG:
+    ``uint16(float32(depth) * depth_scale) / depth_scale`` (truncation), float64."""
+    return (np.asarray(depth, dtype=np.float32) * np.float32(depth_scale)).astype(np.uint16) / depth_scale

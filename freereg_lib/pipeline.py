@@ -86,6 +86,8 @@ def depth_view(pair: Pair, cfg: FreeRegConfig) -> DepthView:
                  else _where_points_went(pair, cfg))
         raise ValueError(f"pair {pair.name}: no point of the cloud projects into the depth view; {where}")
     full = densify.densify(raw, cfg.densify, hole_value=cfg.multiscale_hole_m)
+    if cfg.densify != "none" and cfg.dense_png:  # the official *.dense.depth.png, read back
+        full = densify.png_round_trip(full, cfg.depth_png_scale)
     dense = projection.clip_to_range(full, cfg.depth_min, cfg.depth_max)
     ids = None
     if pair.point_ids is not None and np.any(index >= 0):

@@ -64,7 +64,8 @@ def test_scannet_densifies_the_sensor_depth_with_fill_in_fast():
     d = _holey_depth()
     view = pipeline.depth_view(_sensor_pair(d), config_for("scannet"))
     assert np.array_equal(view.raw, d)
-    expected = densify.fill_in_fast(d, max_depth=15.0)
+    # Densified, then read back from the official uint16 PNG (cfg.dense_png): millimetres, truncated.
+    expected = densify.png_round_trip(densify.fill_in_fast(d, max_depth=15.0), 1000.0)
     expected[(expected <= 0.01) | (expected >= 15.0)] = 0.0
     assert np.array_equal(view.dense, expected)
     assert (view.dense[d == 0] > 0).mean() > 0.9  # the holes are filled

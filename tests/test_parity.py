@@ -245,3 +245,22 @@ def test_benchmark_notebook_picks_fcgf_on_the_real_backend():
     env = {"geometric_method": None, "backend_name": "micro"}
     exec(setup.split("cfg = config_for(")[0].split("backend_name = backend\n", 1)[1], env)
     assert env["geometric_method"] == "fpfh"
+
+
+def test_densified_map_goes_through_the_official_uint16_png_or_stays_float_on_request():
+    ins, outs = case("gen_meta_run", "scannet")
+    raw = ins["depth0"] / 1000.0
+    dense = densify.densify(raw, "fast")
+    np.testing.assert_array_equal(densify.png_round_trip(dense, 1000.0), outs["dense0"] / 1000.0)
+    gap = dense - outs["dense0"] / 1000.0
+    assert 0 < gap.max() < 1e-3 and gap.min() > -1e-6  # the float map is up to 1 mm deeper (float32 rounding aside)
+    from freereg_lib.pair import Pair
+
+    K = cameras.intrinsics(100.0, 100.0, 63.5, 47.5)
+    pair = Pair(image=np.zeros((96, 128, 3), np.uint8), K_image=K, points=cameras.backproject(raw, K)[0], K_depth=K,
+                depth_size=(96, 128), T_pc_sensor=np.eye(4), T_cam_pc=np.eye(4), sensor_depth=raw, name="s")
+    view = pipeline.depth_view(pair, config_for("scannet"))
+    np.testing.assert_array_equal(view.full, outs["dense0"] / 1000.0)
+    floats = pipeline.depth_view(pair, config_for("scannet", dense_png=False))
+    np.testing.assert_array_equal(floats.full, dense)
+    assert config_for("kitti").depth_png_scale == 256.0
