@@ -37,7 +37,6 @@ STUDENT_LIMIT_S = 600.0   # hard wall-clock limit of one student's process
 MEMORY_MB = 4096          # address space of one student's process (torch alone maps ~1.7 GB)
 FILE_MB = 64              # largest file one student's process may write
 OUTPUT_BYTES = 2**20      # what a student's process may print before it is stopped
-STATUSES = ("ok", "partial", "failed", "not implemented", "missing", "stopped", "refused")
 
 
 @dataclass
