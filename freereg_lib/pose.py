@@ -214,7 +214,7 @@ def official_refinement(src_m: np.ndarray, tgt_m: np.ndarray, T0: np.ndarray, in
 
 def official_ransac(src: np.ndarray, tgt: np.ndarray, inlier_m: float, iterations: int, ransac_n: int = 4,
                     with_scale: bool = True, seed: int = 0, max_scale_ratio: float = 0.0,
-                    confidence: float = 1.0, batch: int = 2048) -> np.ndarray:
+                    confidence: float = 1.0, batch: int = 256) -> np.ndarray:
     """Open3D 0.12's correspondence RANSAC on matched rows ``src (K, 3)`` -> ``tgt (K, 3)``.
 
     Each of ``iterations`` hypotheses is Umeyama's similarity (rigid without ``with_scale``)
@@ -252,19 +252,21 @@ def official_ransac(src: np.ndarray, tgt: np.ndarray, inlier_m: float, iteration
         M = M[rows]
         # One GEMM for all hypotheses' rotations: (b * 3, 3) @ (3, K); an inner dimension of 3
         # is summed in one order whatever BLAS's threading, so the counts are reproducible.
-        diff = (M[:, :3, :3].reshape(-1, 3) @ src_t).reshape(len(M), 3, K) + M[:, :3, 3:] - tgt_t
+        # Small batches updated in place stay in cache: the product is memory-bound.
+        diff = (M[:, :3, :3].reshape(-1, 3) @ src_t).reshape(len(M), 3, K)
+        diff += M[:, :3, 3:]
+        diff -= tgt_t
         d2 = np.einsum("bik,bik->bk", diff, diff)
         inl = d2 < max_d2
-        count = inl.sum(axis=1)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            rmse = np.sqrt(np.where(inl, d2, 0.0).sum(axis=1) / count)
-        top = count.max()
-        if top == 0:
+        count = np.count_nonzero(inl, axis=1)
+        top = int(count.max())
+        if top == 0 or top < best_count:
             continue
         cand = np.nonzero(count == top)[0]
-        k = int(cand[np.argmin(rmse[cand])])  # argmin keeps the first of equal RMSEs: draw order
-        if top > best_count or (top == best_count and rmse[k] < best_rmse):
-            best, best_count, best_rmse = M[k], int(top), float(rmse[k])
+        rmse = np.sqrt(np.where(inl[cand], d2[cand], 0.0).sum(axis=1) / top)
+        k = int(np.argmin(rmse))  # argmin keeps the first of equal RMSEs: draw order
+        if top > best_count or rmse[k] < best_rmse:
+            best, best_count, best_rmse = M[cand[k]], top, float(rmse[k])
             if confidence < 1.0:
                 # Open3D 0.12 lowers its exit iteration when a hypothesis improves (per thread;
                 # here in draw order), counted from the first iteration.
@@ -272,7 +274,7 @@ def official_ransac(src: np.ndarray, tgt: np.ndarray, inlier_m: float, iteration
                 with np.errstate(divide="ignore", invalid="ignore"):
                     exit_at = np.log(1.0 - confidence) / np.log(1.0 - fit ** ransac_n)
                 if exit_at < stop:
-                    stop = max(int(np.ceil(exit_at)), first + int(rows[k]) + 1)
+                    stop = max(int(np.ceil(exit_at)), first + int(rows[cand[k]]) + 1)
     return best
 
 
