@@ -294,7 +294,10 @@ def _pipeline_eval_run(i):
     from . import metrics
     from .config import config_for
 
-    cfg = config_for(str(_scalar(i.get("config", "3dmatch"))))
+    cfg = config_for(str(_scalar(i.get("config", "3dmatch"))))  # the manifest's setting: 3DMatch's thresholds
+    named = {"mask_min": "depth_min", "mask_max": "depth_max", "ir_thres": "tau_c", "r_thres": "rr_rot_deg",
+             "t_thres": "rr_trans_m"}
+    cfg = cfg.override(**{f: float(i[k]) for k, f in named.items() if k in i})  # a case may name its own
     K = np.asarray(i["rgb_intrinsic"]) if "rgb_intrinsic" in i else _icl_K()
     K_d = np.asarray(i["dpt_intrinsic"]) if "dpt_intrinsic" in i else K
     uv_s = i.get("rgb_kpts_uv", i.get("kpts_uv"))
