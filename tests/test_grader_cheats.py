@@ -8,7 +8,8 @@ grading module's ``_assert_close`` with a no-op; (3) calls the library's referen
 ``sys.setprofile(None)``; (4) calls it from a thread; (5) executes the answer key's cell, read
 from the project's ``notebooks/``; (6) leaves children behind that called ``setsid()`` (one
 with a clean environment). None scores above 0 on ``student_fuse``, the honest student gets
-20/20, and no process of theirs survives the grading.
+20/20, and no process of theirs survives the grading. Where Landlock scopes signals (Linux
+6.12+) a seventh tries to SIGKILL the grading process, which here is pytest itself.
 """
 from __future__ import annotations
 
@@ -115,6 +116,15 @@ subprocess.Popen(["sleep", "4242"], env={}, start_new_session=True)  # no marker
 """ + WRONG
 
 
+KILLS_GRADER = """
+import os, signal
+try:
+    os.kill(os.getppid(), signal.SIGKILL)  # the grading process (here: pytest itself)
+except OSError:
+    pass
+""" + WRONG
+
+
 def _marked() -> list[int]:
     """Processes that carry a grading marker."""
     found = []
@@ -152,6 +162,8 @@ def test_six_cheats_score_zero_the_honest_student_full_marks_and_nothing_survive
         "escapes": _student(tmp_path / "escapes", ESCAPES),
         "honest": _student(tmp_path / "honest", mnn, _key_source("student_fuse")),
     }
+    if sandbox.landlock_abi() >= 6:  # Landlock's signal scope (Linux 6.12+): a seventh, who tries to kill the grader
+        students["kills_grader"] = _student(tmp_path / "kills_grader", KILLS_GRADER)
     report = tmp_path / "scores.json"
     start = time.time()
     assert A.main(["grade", *map(str, students.values()), "--json", str(report), "--timeout", "10",
