@@ -108,7 +108,8 @@ def student_fuse(f_d, f_g, w):
 def test_each_student_in_its_own_process_results_written_as_each_finishes(tmp_path, capsys):
     students = {name: _student(tmp_path / name, source) for name, source in [
         ("hangs", HANGS), ("exits", EXITS), ("patches", PATCHES_IN_CALL), ("numpy", PATCHES_NUMPY),
-        ("calls", CALLS_REFERENCE), ("reloads", RELOADS), ("memory", _key_source("student_fuse") + HOGS_MEMORY), ("floods", FLOODS),
+        ("calls", CALLS_REFERENCE), ("reloads", RELOADS), ("memory", _key_source("student_fuse") + HOGS_MEMORY),
+        ("floods", FLOODS),
         ("honest", _key_source("student_fuse"))]}
     report = tmp_path / "scores.json"
     argv = ["grade", *map(str, students.values()), "--json", str(report), "--timeout", "5", "--limit", str(LIMIT_S),

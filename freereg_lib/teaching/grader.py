@@ -209,8 +209,8 @@ def grade(path: str | Path, prepared: Prepared | None = None, timeout: float = C
     top = float(sum(e["max"] for e in exercises))
     result = {"path": str(path), "status": run["status"], "score": score, "max": top,
               "percent": 100.0 * score / top if top else 0.0, "exercises": exercises, "skipped": skipped,
-              "seconds": round(time.time() - start, 1), "confined": bool(loaded.get("landlock")) if isinstance(loaded, dict) else None,
-              "leftover_processes_killed": run["killed"]}
+              "seconds": round(time.time() - start, 1), "confined": bool(confine and sandbox.landlock_abi()),
+              "leftover_processes_killed": run["killed"], "seed": prepared.seed}
     if run["status"] != "graded":
         result["stopped"] = run["ended"]
     if print_table:
@@ -235,7 +235,7 @@ def _run_student(job: Path, files: list[Path], wanted: list[str], prepared: Prep
     spec = {"notebooks": [str(f.resolve()) for f in files], "wanted": wanted, "refs": refs,
             "poison": prepared.poison_key, "timeout": timeout, "memory_mb": memory_mb,
             "cpu_s": int(limit) + 5, "file_mb": FILE_MB, "root": str(package.parent), "confine": confine,
-            "cgroup": None}
+            "landlock": sandbox.landlock_abi(), "cgroup": None}
     wire.save(job / "inputs.npz", {n: prepared.inputs[n] for n in wanted})
     cgroup = sandbox.make_cgroup(marker)
     spec["cgroup"] = str(cgroup) if cgroup else None
@@ -244,7 +244,8 @@ def _run_student(job: Path, files: list[Path], wanted: list[str], prepared: Prep
     env = {k: v for k, v in os.environ.items() if k != sandbox.MARKER_ENV}
     env.update({sandbox.MARKER_ENV: marker, "HOME": str(work), "TMPDIR": str(work / "tmp"),
                 "MPLCONFIGDIR": str(work / "tmp"), "PYTHONDONTWRITEBYTECODE": "1",
-                "PYTHONPATH": os.pathsep.join([str(package.parent)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])})
+                "PYTHONPATH": os.pathsep.join([str(package.parent)]
+                                              + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])})
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         env.setdefault(var, "1")
     sandbox.subreaper(True)

@@ -202,6 +202,10 @@ def run(job_dir: Path) -> int:
     root = Path(job["root"])
     abi = sandbox.confine(read=_readable(root) + [job_dir / "inputs.npz"], read_dir_only=[root],
                           write=[answers, job_dir / "work", Path("/dev/null")]) if job["confine"] else 0
+    if job["confine"] and job.get("landlock") and not abi:
+        print("grading: Landlock is available but could not confine this process; no student code ran",
+              file=sys.stderr)
+        return 70
     found: dict[str, Callable] = {}
     problems: dict[str, str] = {}
     for path, nb in books:
