@@ -1,6 +1,6 @@
 #!/usr/bin/env python
 """Seconds per training step of each micro diffusion stage on this machine, and what the
-committed schedule (``freereg_lib.micro.retrain``) costs at those rates (issue 14).
+committed schedule (``freereg_lib.training.retrain``) costs at those rates (issue 14).
 
     python benchmarks/bench_micro_training.py [--rooms 20] [--steps 10] [--threads 2]
 
@@ -35,7 +35,7 @@ PRECISIONS = ("no", "bf16")  # train_diffusion --mixed-precision
 def schedule_steps() -> list[dict[str, int]]:
     """Steps each phase of the committed schedule trains, per stage (a continued stage trains
     from the step the previous phase left it at, a restarted ControlNet from step 0)."""
-    from freereg_lib.micro import retrain, train_diffusion as T
+    from freereg_lib.training import retrain, train_diffusion as T
 
     done = {s: 0 for s in T.STAGES}
     phases = []
@@ -59,8 +59,9 @@ def main(argv=None) -> int:
 
     import torch
 
-    from freereg_lib.micro import models as M, retrain, train_diffusion as T
-    from freereg_lib.micro.views import render_views, save_views
+    from freereg_lib.micro import models as M
+    from freereg_lib.training import retrain, train_diffusion as T
+    from freereg_lib.training.views import render_views, save_views
 
     torch.set_num_threads(a.threads)
     print(f"{cpu_model()}, {os.cpu_count()} cores, torch on {a.threads} threads, "
@@ -109,7 +110,7 @@ def main(argv=None) -> int:
         rows.append((f"phase {i}: encoding", f"{n_views} views", n_views / views_per_s))
         rate, tag = rates[ph["precision"]], "" if ph["precision"] == "no" else f" ({ph['precision']})"
         rows += [(f"phase {i}: {s}{tag}", f"{ph[s]} steps", ph[s] * rate[s]) for s in T.STAGES if s in ph]
-    print("\nThe committed schedule (python -m freereg_lib.micro.retrain) at these rates, estimated:")
+    print("\nThe committed schedule (python -m freereg_lib.training.retrain) at these rates, estimated:")
     print("| part | work | min |\n|---|---|---|")
     for name, work, sec in rows:
         print(f"| {name} | {work} | {sec / 60:.1f} |")

@@ -2,7 +2,7 @@
 
     python benchmarks/bench_parallel_kernels.py [--copies 2] [--pairs 2]
 
-Runs ``python -m freereg_lib.micro.evaluate --pairs P --trained-only`` (the micro FreeReg-D
+Runs ``python -m freereg_lib.training.evaluate --pairs P --trained-only`` (the micro FreeReg-D
 chain: torch diffusion features, PnP) once alone, then K copies at the same time with the
 environment's thread settings minus ``OMP_NUM_THREADS`` / ``MKL_NUM_THREADS`` (torch then
 uses every core in each copy), then K copies with the share the batch runner's local Dask
@@ -26,7 +26,7 @@ from freereg_lib.cluster import THREAD_VARIABLES, available_cores, worker_thread
 
 
 def run_copies(copies: int, pairs: int, env: dict) -> float:
-    cmd = [sys.executable, "-m", "freereg_lib.micro.evaluate", "--pairs", str(pairs), "--trained-only"]
+    cmd = [sys.executable, "-m", "freereg_lib.training.evaluate", "--pairs", str(pairs), "--trained-only"]
     t0 = time.perf_counter()
     procs = [subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
              for _ in range(copies)]

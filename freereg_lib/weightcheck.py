@@ -228,17 +228,20 @@ def load_pretrained(cls, folder: str | os.PathLike, what: str, **kw):
     return model
 
 
+# The committed micro weights (``freereg_lib.micro.models.WEIGHTS_DIR``), named here so that this
+# utility, which the model loaders import, does not import them back.
+MICRO_WEIGHTS_DIR = Path(__file__).parent / "micro" / "weights"
+
+
 def _key_name(k) -> str:
     return str(k[0] if isinstance(k, tuple) else k)
 
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m freereg_lib.weightcheck write|verify [ROOT]`` (default: the micro weights)."""
-    from .micro.models import WEIGHTS_DIR
-
     p = argparse.ArgumentParser(prog="python -m freereg_lib.weightcheck", description=__doc__.split("\n")[0])
     p.add_argument("command", choices=("write", "verify"))
-    p.add_argument("root", nargs="?", default=str(WEIGHTS_DIR))
+    p.add_argument("root", nargs="?", default=str(MICRO_WEIGHTS_DIR))
     args = p.parse_args(argv)
     root = Path(args.root)
     if args.command == "write":

@@ -10,7 +10,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from freereg_lib.micro import models as M  # noqa: E402
-from freereg_lib.micro import train_diffusion as T  # noqa: E402
+from freereg_lib.training import train_diffusion as T  # noqa: E402
 
 
 def _views(n: int = 8, seed: int = 0, hw=(64, 64)) -> dict:
@@ -277,14 +277,14 @@ def test_micro_backend_refuses_missing_weights_and_outdoor(tmp_path):
     from freereg_lib.backends import MissingWeightsError, get_backend
     from freereg_lib.config import FreeRegConfig, config_for
 
-    with pytest.raises(MissingWeightsError, match="micro.retrain --export"):
+    with pytest.raises(MissingWeightsError, match="training.retrain --export"):
         get_backend("micro", FreeRegConfig(), weights_dir=tmp_path)
     with pytest.raises(ValueError, match="indoor"):
         get_backend("micro", config_for("kitti"))
 
 
 def test_diffusion_card_lists_further_evaluations_with_their_noise_seeds(tmp_path):
-    from freereg_lib.micro import card
+    from freereg_lib.training import card
 
     def run(n, noise, p):
         r = {"n_pairs": n, "IR": 8.5, "IR_ci": [5.8, 11.7], "FMR": 31.0, "FMR_ci": [22, 41], "RR": 4.0, "RR_ci": [1, 8]}
@@ -304,7 +304,7 @@ def test_diffusion_card_lists_further_evaluations_with_their_noise_seeds(tmp_pat
 
 
 def test_diffusion_card_puts_each_sweep_beside_the_default_run_of_its_pairs(tmp_path):
-    from freereg_lib.micro import card
+    from freereg_lib.training import card
 
     def trained(n, ir_per_pair):
         return {"n_pairs": n, "IR_per_pair": ir_per_pair, "IR": 100 * sum(ir_per_pair) / n, "IR_ci": [1.0, 2.0],

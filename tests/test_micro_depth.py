@@ -12,7 +12,7 @@ torch = pytest.importorskip("torch")
 pytest.importorskip("transformers")
 
 from freereg_lib.micro import depth as MD  # noqa: E402
-from freereg_lib.micro import train_depth as T  # noqa: E402
+from freereg_lib.training import train_depth as T  # noqa: E402
 
 
 def _views(n=5, seed=0):

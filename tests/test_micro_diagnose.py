@@ -1,4 +1,4 @@
-"""The FreeReg-D decomposition (freereg_lib.micro.diagnose): the depth-camera image the renderer
+"""The FreeReg-D decomposition (freereg_lib.training.diagnose): the depth-camera image the renderer
 adds, the feature pass on a true image, and its first variant reproducing the pipeline's number;
 and the images the ControlNet generates from a depth map (notebook 01's Fig. 2-I)."""
 from __future__ import annotations
@@ -92,7 +92,7 @@ def test_generate_draws_repeatable_images_that_depend_on_the_seed(tiny):
 
 def test_depth_side_maps_names_a_pair_without_its_depth_camera_image(tiny):
     from freereg_lib import pipeline
-    from freereg_lib.micro import diagnose
+    from freereg_lib.training import diagnose
 
     pair = synthetic.make_pair("indoor", seed=3, image_size=SIZE)
     view = pipeline.depth_view(pair, FreeRegConfig())
@@ -105,7 +105,7 @@ def test_depth_side_maps_names_a_pair_without_its_depth_camera_image(tiny):
 
 def test_the_frame_hint_variant_changes_only_the_hint(tiny):
     from freereg_lib import pipeline
-    from freereg_lib.micro import diagnose
+    from freereg_lib.training import diagnose
 
     cfg = FreeRegConfig()
     # At full size (480 x 640) the 60,000 points fill a fifth of the depth camera's pixels.
@@ -126,7 +126,7 @@ def test_the_frame_hint_variant_changes_only_the_hint(tiny):
 
 def test_the_recoloured_variant_is_the_true_image_pass_on_its_own_image(tiny):
     from freereg_lib import pipeline
-    from freereg_lib.micro import diagnose
+    from freereg_lib.training import diagnose
 
     pair = diagnose.render_with_depth_camera_images("indoor", 3, image_size=SIZE)
     view = pipeline.depth_view(pair, FreeRegConfig())
@@ -140,7 +140,7 @@ def test_the_recoloured_variant_is_the_true_image_pass_on_its_own_image(tiny):
 
 def test_the_first_variant_is_the_pipelines_freereg_d():
     pytest.importorskip("diffusers")
-    from freereg_lib.micro import diagnose, evaluate
+    from freereg_lib.training import diagnose, evaluate
 
     ours = diagnose.diagnose(1, 2026, progress=False)
     theirs = evaluate.evaluate(1, 2026, progress=False, which=("trained",))
@@ -152,7 +152,7 @@ def test_the_first_variant_is_the_pipelines_freereg_d():
 def test_card_lists_the_decomposition_as_run(tmp_path):
     import json
 
-    from freereg_lib.micro import card
+    from freereg_lib.training import card
 
     assert card._diagnoses(tmp_path) == []
     run = {"n_pairs": 100, "seed": 2026, "noise_seed": None, "weights": "committed",
@@ -176,7 +176,7 @@ def test_card_lists_the_decomposition_as_run(tmp_path):
 
 
 def test_with_depth_camera_image_renders_the_same_pair_again():
-    from freereg_lib.micro import diagnose
+    from freereg_lib.training import diagnose
 
     pair = synthetic.make_pair("indoor", seed=5, image_size=SIZE, overlap=(0.2, 0.9))
     again = diagnose.with_depth_camera_image(pair)

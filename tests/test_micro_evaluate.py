@@ -1,10 +1,10 @@
-"""The micro models' held-out comparison (freereg_lib.micro.evaluate): its statistics on
+"""The micro models' held-out comparison (freereg_lib.training.evaluate): its statistics on
 hand-made numbers, and the reuse of an earlier random-weight run only where it is comparable."""
 from __future__ import annotations
 
 import pytest
 
-from freereg_lib.micro import evaluate as E
+from freereg_lib.training import evaluate as E
 
 
 def test_bootstrap_and_permutation_on_hand_made_numbers():

@@ -11,7 +11,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from freereg_lib.micro import fcgf as MF  # noqa: E402
-from freereg_lib.micro import train_fcgf as T  # noqa: E402
+from freereg_lib.training import train_fcgf as T  # noqa: E402
 
 
 def _pair(seed: int = 0, n: int = 500, size: float = 0.4) -> dict:
@@ -204,7 +204,7 @@ def test_recent_fcgf_features_come_from_memory_only_for_the_same_cloud_and_netwo
 
 
 def test_table9_ordering_is_read_from_both_ladders():
-    from freereg_lib.micro.evaluate_fcgf import ladder_line, ladder_order
+    from freereg_lib.training.evaluate_fcgf import ladder_line, ladder_order
 
     tight, loose = "RR@5deg/0.1m", "RR@25deg/0.5m"
 
@@ -227,7 +227,7 @@ def test_table9_ordering_is_read_from_both_ladders():
 def test_fcgf_card_states_the_rotations_trained_with_and_the_table9_verdict(tmp_path):
     import json
 
-    from freereg_lib.micro import card
+    from freereg_lib.training import card
 
     stats = {"mean": 1.0, "ci": [0.0, 2.0]}
     row = {"IR": stats, "FMR": stats, "RR": stats, "ladder": {"RR@5deg/0.1m": 0.0, "RR@25deg/0.5m": 3.3}}

@@ -10,9 +10,9 @@ import pytest
 
 pytest.importorskip("torch")
 
-from freereg_lib.micro import retrain as R  # noqa: E402
-from freereg_lib.micro import train_diffusion as T  # noqa: E402
-from freereg_lib.micro.views import render_views  # noqa: E402
+from freereg_lib.training import retrain as R  # noqa: E402
+from freereg_lib.training import train_diffusion as T  # noqa: E402
+from freereg_lib.training.views import render_views  # noqa: E402
 
 WEIGHTS = Path(__file__).resolve().parents[1] / "freereg_lib" / "micro" / "weights"
 

@@ -310,7 +310,7 @@ class MicroBackend(_TorchBackend):
         if not self.random_weights and M.missing_parts(self.weights_dir):
             raise MissingWeightsError(
                 f"micro weights missing in {self.weights_dir}: {', '.join(M.missing_parts(self.weights_dir))}; "
-                "retrain them with `python -m freereg_lib.micro.retrain --export "
+                "retrain them with `python -m freereg_lib.training.retrain --export "
                 f"{self.weights_dir}`")
         if depth_weights_dir is None:
             own = self.weights_dir / "depth"
@@ -320,7 +320,7 @@ class MicroBackend(_TorchBackend):
             raise MissingWeightsError(
                 f"micro depth weights missing in {self.depth_weights_dir}: "
                 f"{', '.join(MD.missing_files(self.depth_weights_dir))}; retrain them with "
-                f"`python -m freereg_lib.micro.train_depth --export {self.depth_weights_dir}` "
+                f"`python -m freereg_lib.training.train_depth --export {self.depth_weights_dir}` "
                 "(or pass mono_depth='stub')")
         self._stub = None
         kind = "random weights, same architectures" if self.random_weights else "trained on synthetic rooms"

@@ -1,11 +1,11 @@
-"""Micro models: miniature versions of the paper's learned models, trained here on the
-synthetic world so that a CPU runs FreeReg's real code path with *learned* weights.
+"""Micro models, the inference side: miniature versions of the paper's learned models, trained
+on the synthetic world so that a CPU runs FreeReg's real code path with *learned* weights.
 
-* :mod:`.views` renders the training views (seeded, never the evaluation seeds) and makes
-  their ControlNet hints exactly as the pipeline does at inference;
-* :mod:`.models` holds the architectures (diffusers / transformers classes, small configs)
-  and loads the committed weights from ``weights/``;
-* :mod:`.train_diffusion` retrains the VAE, the UNet and the depth ControlNet from scratch.
+* :mod:`.models` holds the diffusion architectures (diffusers / transformers classes, small
+  configs) and loads the committed weights from ``weights/``;
+* :mod:`.depth` the micro ZoeDepth, :mod:`.fcgf` the micro FCGF (architecture, save, load).
 
-The model card is ``weights/MODEL_CARD.md``.
+This package sits in the models layer beside :mod:`freereg_lib.backends` and never imports
+training: rendering the training views, training, evaluation, diagnosis and the model cards are
+:mod:`freereg_lib.training`. The model card is ``weights/MODEL_CARD.md``.
 """

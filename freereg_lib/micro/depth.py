@@ -139,7 +139,7 @@ def load(folder: str | Path = WEIGHTS_DIR, device="cpu", flip: bool = True):
     if missing:
         raise MissingWeightsError(
             f"micro depth weights missing in {folder}: {', '.join(missing)}; retrain them with "
-            f"`python -m freereg_lib.micro.train_depth --export {folder}`")
+            f"`python -m freereg_lib.training.train_depth --export {folder}`")
     model = load_pretrained(ZoeDepthForDepthEstimation, folder, "the micro ZoeDepth", local_files_only=True,
                             torch_dtype=torch.float32)
     try:

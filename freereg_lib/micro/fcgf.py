@@ -66,7 +66,7 @@ def load(folder: str | Path, device="cpu"):
     if not path.is_file():
         raise MissingWeightsError(
             f"micro FCGF weights not found: {path}; retrain them with "
-            f"`python -m freereg_lib.micro.train_fcgf --export {Path(folder)}`",
+            f"`python -m freereg_lib.training.train_fcgf --export {Path(folder)}`",
             model_ids=[WEIGHTS_FILE], searched=[str(path)])
     check_folder(folder)  # whole safetensors, SHA256SUMS where there is one
     return load_fcgf(str(path), conv1_kernel_size=CONV1_KERNEL, device=device)

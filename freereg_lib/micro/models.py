@@ -129,7 +129,7 @@ def load(folder: str | Path = WEIGHTS_DIR, device="cpu", parts=PARTS) -> dict:
     if missing:
         raise MissingWeightsError(
             f"micro model weights missing in {folder}: {', '.join(missing)} "
-            "(retrain with `python -m freereg_lib.micro.train_diffusion`)")
+            "(retrain with `python -m freereg_lib.training.train_diffusion`)")
     classes = dict(vae=AutoencoderKL, unet=UNet2DConditionModel, controlnet=ControlNetModel,
                    text_encoder=CLIPTextModel, tokenizer=CLIPTokenizer)
     out = {}

@@ -1,6 +1,6 @@
 """Held-out quality of the micro monocular depth, its model card and figure.
 
-    python -m freereg_lib.micro.evaluate_depth [--pairs 30] [--seed 2026]
+    python -m freereg_lib.training.evaluate_depth [--pairs 30] [--seed 2026]
         [--weights freereg_lib/micro/weights/depth] [--figure figures/02_micro_depth.png]
 
 On synthetic indoor pairs (``make_pairs(n, "indoor", seed)``; the training rooms come from a
@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import depth as MD
+from ..micro import depth as MD
 
 BINS = ((0.0, 2.0), (2.0, 4.0), (4.0, np.inf))
 EDGE_RANGE_M, EDGE_WINDOW = 0.2, 7
@@ -196,13 +196,13 @@ def write_card(folder: Path, ev: dict) -> None:
         *([f"- Schedule: {tr['schedule_history']}."] if tr.get("schedule_history") else []),
         f"- Validation MAE (no flip): {tr['val_mae'][0][1]:.3f} m at step {tr['val_mae'][0][0]} -> "
         f"{tr['val_mae'][-1][1]:.3f} m at step {tr['val_mae'][-1][0]}. Curves: `loss_curve.png`.",
-        ("- Retrain: `OMP_NUM_THREADS=1 python -m freereg_lib.micro.train_depth --threads 1 --steps "
+        ("- Retrain: `OMP_NUM_THREADS=1 python -m freereg_lib.training.train_depth --threads 1 --steps "
          f"{tr['steps']} --export freereg_lib/micro/weights/depth` (seeded, resumable), then "
-         "`python -m freereg_lib.micro.evaluate_depth`." if "--init-from" not in tr.get("schedule_history", "") else
+         "`python -m freereg_lib.training.evaluate_depth`." if "--init-from" not in tr.get("schedule_history", "") else
          "- Retrain: follow the schedule above: the first phase on 500 rooms (`train_depth --scenes 500 "
          "--steps 4100 --export A`, whose own warm restarts are listed), then `train_depth --init-from A "
          f"--scenes {a['scenes']} --steps {tr['steps']} --export freereg_lib/micro/weights/depth` (seeded, "
-         "resumable), then `python -m freereg_lib.micro.evaluate_depth`. The first 500 rooms are the same "
+         "resumable), then `python -m freereg_lib.training.evaluate_depth`. The first 500 rooms are the same "
          "in both view sets."),
         "",
         f"## Held-out quality ({ev['pairs']} pairs `make_pairs({ev['pairs']}, 'indoor', seed={ev['seed']})`, "

@@ -1,6 +1,6 @@
 """Train the micro monocular depth (:mod:`.depth`) from scratch on the synthetic rooms.
 
-    python -m freereg_lib.micro.train_depth [--out runs/micro/train] [--scenes 500]
+    python -m freereg_lib.training.train_depth [--out runs/micro/train] [--scenes 500]
         [--steps 1500] [--batch 8] [--lr 5e-4] [--threads 1]
         [--export freereg_lib/micro/weights/depth]
 
@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from . import depth as MD
+from ..micro import depth as MD
 from .views import DEPTH_HW, RENDER_HW, load_or_render
 
 VAL_SCENES = 20

@@ -1,7 +1,7 @@
 """Retrain the committed micro diffusion weights from scratch in one command: the three phases
 of their schedule, then the total time.
 
-    python -m freereg_lib.micro.retrain [--out runs/micro/retrain]
+    python -m freereg_lib.training.retrain [--out runs/micro/retrain]
         [--export runs/micro/retrain/weights] [--threads N]
 
 The committed weights were made over rounds 1-6 (``weights/training.json``, "history"); the steps

@@ -1,6 +1,6 @@
 """Held-out quality of the micro FCGF and of the micro geometric chain (FreeReg-G, fused FreeReg).
 
-    python -m freereg_lib.micro.evaluate_fcgf [--pairs 30] [--seed 2026] [--skip-chain]
+    python -m freereg_lib.training.evaluate_fcgf [--pairs 30] [--seed 2026] [--skip-chain]
         [--fcgf DIR] [--kabsch-scoring matches] [--out DIR/eval.json]
 
 On synthetic indoor pairs from integer seeds (the training pairs come from a two-word seed

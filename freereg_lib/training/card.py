@@ -1,6 +1,6 @@
 """The micro models' model card, written from what training and evaluation recorded.
 
-    python -m freereg_lib.micro.card [--weights freereg_lib/micro/weights]
+    python -m freereg_lib.training.card [--weights freereg_lib/micro/weights]
 
 Reads ``training.json`` (from ``train_diffusion --export``) and ``eval.json`` (from
 ``evaluate --out``) in the weights folder and writes ``loss_curves.png`` and
@@ -15,11 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
-from . import models as M
+from ..micro import models as M
 
 # Measured, not computed: the wall times `retrain` printed (README, "Retrain and re-measure").
 RETRAIN_MEASURED = (
-    "Retraining from scratch (`python -m freereg_lib.micro.retrain`), measured on a 2-core AMD EPYC with"
+    "Retraining from scratch (`python -m freereg_lib.training.retrain`), measured on a 2-core AMD EPYC with"
     " nothing else running while the schedule still trained a ControlNet in every phase: rendering and"
     " phases 1-2 (rounds 2 and 4) in one run of 125.4 min (2026-12-03: rendering 17.0, phase 1 59.6,"
     " phase 2 48.8 min), phase 3 (round 5) as its own training run of 46.1 min the same day; 171.5 min in"
@@ -123,7 +123,7 @@ def _diagnoses(folder: Path) -> list[str]:
         "would have seen, (2a) the same on that true image of the room re-coloured (every colour and",
         "texture drawn afresh from the world's prior: what a generator that knows the geometry exactly,",
         "but not the colours no depth map holds, could give), (3) the image side's own path (UNet alone)",
-        "on the true image (`python -m freereg_lib.micro.diagnose`; '-': a run made before the column",
+        "on the true image (`python -m freereg_lib.training.diagnose`; '-': a run made before the column",
         "existed):",
         "",
         "| pairs (seed) | noise seed | weights | (1) FreeReg-D IR % | (1b) hint from the full frame % | "
@@ -198,8 +198,8 @@ def write_card(folder: Path = M.WEIGHTS_DIR) -> Path:
         "# Micro diffusion models: model card",
         "",
         "Miniature Stable Diffusion v1.5 + depth ControlNet, trained from scratch on this repository's",
-        "synthetic indoor rooms by `python -m freereg_lib.micro.train_diffusion` (architectures:",
-        "`freereg_lib/micro/models.py`; `python -m freereg_lib.micro.retrain` reruns the whole schedule, the",
+        "synthetic indoor rooms by `python -m freereg_lib.training.train_diffusion` (architectures:",
+        "`freereg_lib/micro/models.py`; `python -m freereg_lib.training.retrain` reruns the whole schedule, the",
         "history below, from scratch). They let a CPU run FreeReg's diffusion branch with *learned*",
         "weights (`get_backend(\"micro\")`). They are not Stable Diffusion: a few million parameters, one",
         "synthetic world, two texts. Numbers measured with them are a miniature of the paper's experiment,",
@@ -214,7 +214,7 @@ def write_card(folder: Path = M.WEIGHTS_DIR) -> Path:
         f"{training['validation_rooms']} rooms are held out for the validation losses.",
         "- Hints: made as the pipeline makes them at inference (the camera's depth back-projected,",
         "  subsampled to the synthetic cloud size, projected, densified with `fill_in_fast`, normalised",
-        "  by the official 2nd / 85th-percentile rule), `freereg_lib/micro/views.py`.",
+        "  by the official 2nd / 85th-percentile rule), `freereg_lib/training/views.py`.",
         f"- Seed {a['seed']}, batch {a['batch']}, AdamW (weight decay 0.01), {a['warmup']}-step warm-up,",
         "  gradient norm clipped at 1, horizontal flips.",
         f"- VAE (`AutoencoderKL`, {training['parameters_millions']['vae']} M): {st['vae']['steps']} steps,"
@@ -250,7 +250,7 @@ def write_card(folder: Path = M.WEIGHTS_DIR) -> Path:
             f"FreeReg-D (layers 0, 4, 6; PnP-RANSAC) on {ev['trained']['n_pairs']} held-out synthetic indoor",
             f"pairs (`sources.iter_pairs(\"synthetic_indoor\", {ev['trained']['n_pairs']}, seed={ev['seed']})`), "
             "trained weights against the same architecture with random weights;",
-            "% with 95 % bootstrap intervals over pairs (`python -m freereg_lib.micro.evaluate`). As in the",
+            "% with 95 % bootstrap intervals over pairs (`python -m freereg_lib.training.evaluate`). As in the",
             "official evaluation, depth-side keypoints are lifted with the depth frame's true depth",
             "(`Pair.depth_frame_gt`), so every match is scored; runs before commit 0b95832 lifted them with",
             "the projected cloud, which left about 80 % of the matches unevaluable (README).",
@@ -331,7 +331,7 @@ def write_fcgf_card(folder: Path = M.WEIGHTS_DIR / "fcgf") -> Path:
         "",
         "FCGF's ResUNetBN2C (Choy et al., ICCV 2019) at the paper's 3DMatch settings (conv1 kernel 7,",
         "32-d unit-norm features, 2.5 cm voxels), trained from scratch on this repository's synthetic rooms",
-        "by `python -m freereg_lib.micro.train_fcgf`. The network is `freereg_lib/backends/fcgf.py`'s, and",
+        "by `python -m freereg_lib.training.train_fcgf`. The network is `freereg_lib/backends/fcgf.py`'s, and",
         "these weights load with `load_fcgf`, the official checkpoints' loader. The `micro` backend hands it",
         "to the pipeline when `cfg.geometric = \"fcgf\"`. It is not FCGF's 3DMatch model: one synthetic",
         "world, a few hundred steps.",
@@ -374,7 +374,7 @@ def write_fcgf_card(folder: Path = M.WEIGHTS_DIR / "fcgf") -> Path:
                 f"{ev['n_pairs']} held-out synthetic indoor pairs (`make_pairs({ev['n_pairs']}, \"indoor\", "
                 f"seed={ev['seed']})`), the image side on its *true* depth so only the descriptors differ;",
                 "the pipeline's keypoints, mutual nearest neighbours; % with 95 % bootstrap intervals over",
-                "pairs (`python -m freereg_lib.micro.evaluate_fcgf`). FMR: share of pairs with IR > 5 %.",
+                "pairs (`python -m freereg_lib.training.evaluate_fcgf`). FMR: share of pairs with IR > 5 %.",
                 "",
                 "| features | IR at 10 cm | FMR at 10 cm | IR at 0.3 m | FMR at 0.3 m |",
                 "|---|---|---|---|---|",

@@ -1,9 +1,9 @@
 """Train the micro diffusion models from scratch: VAE, then UNet, then depth ControlNet.
 
-    python -m freereg_lib.micro.train_diffusion [--out runs/micro/train] [--scenes 500]
+    python -m freereg_lib.training.train_diffusion [--out runs/micro/train] [--scenes 500]
         [--steps-vae 700] [--steps-unet 2000] [--steps-controlnet 1200] [--batch 16]
         [--export freereg_lib/micro/weights]
-    python -m freereg_lib.micro.train_diffusion --init-from freereg_lib/micro/weights \
+    python -m freereg_lib.training.train_diffusion --init-from freereg_lib/micro/weights \
         --stages controlnet --steps-controlnet 3000 --export runs/micro/weights_next
 
 The stages follow Stable Diffusion's recipe in miniature:
@@ -48,7 +48,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from . import models as M
+from ..micro import models as M
 from .views import load_or_render
 
 STAGES = ("vae", "unet", "controlnet")

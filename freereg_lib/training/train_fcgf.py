@@ -1,6 +1,6 @@
 """Train the micro FCGF from scratch: FCGF's hardest-contrastive loss on synthetic room clouds.
 
-    python -m freereg_lib.micro.train_fcgf [--out runs/micro/train] [--pairs 240] [--steps 500]
+    python -m freereg_lib.training.train_fcgf [--out runs/micro/train] [--pairs 240] [--steps 500]
         [--crop-radius 1.0] [--export freereg_lib/micro/weights/fcgf]
 
 The network is the plain-torch ``ResUNetBN2C`` of :mod:`freereg_lib.backends.fcgf` at the
@@ -34,7 +34,7 @@ image side is a monocular depth cloud at inference); both re-voxelised and passe
 network as one sparse batch. Loss: FCGF's hardest-contrastive loss (threshold 0.1 on the
 squared positive distance, 1.4 on the negative one, 1024 positives, 256 hardest-negative
 candidates a side). Optimiser: AdamW
-(:func:`~freereg_lib.micro.train_diffusion.run_stage`, seeded per step, checkpoints, resume),
+(:func:`~freereg_lib.training.train_diffusion.run_stage`, seeded per step, checkpoints, resume),
 not FCGF's SGD: a few hundred steps, not 100 epochs.
 """
 from __future__ import annotations
@@ -47,7 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .fcgf import VOXEL, build, save
+from ..micro.fcgf import VOXEL, build, save
 from .views import progress_map
 
 TRAIN_STREAM = 0xF3EE_0002

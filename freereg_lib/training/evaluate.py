@@ -1,6 +1,6 @@
 """Held-out quality of the micro diffusion models: trained weights against random ones.
 
-    python -m freereg_lib.micro.evaluate [--pairs 30] [--seed 2026] [--weights DIR]
+    python -m freereg_lib.training.evaluate [--pairs 30] [--seed 2026] [--weights DIR]
         [--guidance-w 4.0] [--t-hat 150] [--controlnet-scale 1.0] [--trained-only]
         [--random-from eval.json] [--out eval.json]
 

@@ -1,6 +1,6 @@
 """Where FreeReg-D loses its matches: the modality gap against the generation.
 
-    python -m freereg_lib.micro.diagnose [--pairs 30] [--seed 2026] [--weights DIR]
+    python -m freereg_lib.training.diagnose [--pairs 30] [--seed 2026] [--weights DIR]
         [--noise-seed S] [--random-weights] [--out diagnose.json]
 
 The synthetic renderer can also shade the true image the depth camera would have seen
@@ -109,7 +109,7 @@ def depth_side_maps(pair, view, frame_view, backend, layers) -> tuple[dict, dict
     redrawn = pair.meta.get("depth_camera_image_redrawn")
     if image_b is None or redrawn is None:
         raise ValueError(f"pair {pair.name} holds no depth-camera image and its re-coloured version; make it "
-                         "with freereg_lib.micro.diagnose.with_depth_camera_image")
+                         "with freereg_lib.training.diagnose.with_depth_camera_image")
     D = backend.diffusion
     maps_image, maps_depth = pipeline.diffusion_maps_batch([pair], [view], backend, layers)[0]
     return maps_image, {
@@ -153,7 +153,7 @@ def pair_inlier_ratios(pair, backend, cfg) -> dict[str, float]:
 def diagnose(n_pairs: int = 30, seed: int = 2026, weights_dir=None, random_weights: bool = False,
              noise_seed: int | None = None, progress: bool = True) -> dict:
     """Per-pair IRs and their means (%, 95 % bootstrap intervals) on the pairs
-    :func:`freereg_lib.micro.evaluate.evaluate` uses (``make_pairs(n_pairs, seed=seed)``), and
+    :func:`freereg_lib.training.evaluate.evaluate` uses (``make_pairs(n_pairs, seed=seed)``), and
     the paired permutation p between neighbouring variants."""
     from tqdm.auto import tqdm
 
