@@ -36,28 +36,29 @@ def _scene_views(args) -> dict[str, np.ndarray]:
     k, views_per_scene, kind = args
     import cv2
 
-    from .. import synthetic as S
     from ..backends.base import depth_hint, resize_to
     from ..cameras import backproject, intrinsics, invert, transform
     from ..config import FreeRegConfig
     from ..pair import Pair
     from ..pipeline import depth_view
+    from ..synthetic.indoor import _indoor_camera, _indoor_scene
+    from ..synthetic.pairs import _subsample
 
     if kind != "indoor":
         raise ValueError(f"training views exist for the indoor world only, got kind={kind!r}")
     cfg = FreeRegConfig()
     rng = np.random.default_rng((TRAIN_STREAM, int(k)))
-    scene, room = S._indoor_scene(rng)
+    scene, room = _indoor_scene(rng)
     H, W = RENDER_HW
     f = 525.0 * W / 640
     K = intrinsics(f, f, (W - 1) / 2, (H - 1) / 2)
     out = {"rgb": [], "hint": [], "depth": []}
     for _ in range(views_per_scene):
-        T_world_cam = S._indoor_camera(rng, room)
+        T_world_cam = _indoor_camera(rng, room)
         hits, depth, _ids = scene.camera_view(T_world_cam, K, RENDER_HW)
         image = scene.shade(hits, RENDER_HW)
         pts = transform(T_world_cam, backproject(depth, K)[0])
-        pts = pts[S._subsample(rng, len(pts))]
+        pts = pts[_subsample(rng, len(pts))]
         pair = Pair(image=image, K_image=K, points=pts, K_depth=K.copy(), depth_size=RENDER_HW,
                     T_pc_sensor=T_world_cam, T_cam_pc=invert(T_world_cam), name=f"train/{k}")
         dense = depth_view(pair, cfg).dense
