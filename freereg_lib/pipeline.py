@@ -220,7 +220,9 @@ def compute_features(
         mono = backend.mono_depth(pair.image, depth_gt=pair.depth_gt)
     mono = np.asarray(mono, dtype=np.float64)
     z_img = cameras.nearest_sample(mono, uv_img)
-    z_img = np.where((z_img > cfg.depth_min) & (z_img < cfg.depth_max), z_img, np.nan)
+    # The official code lifts every image keypoint with the monocular map as it is (no range
+    # mask); only a map with holes (a sensor depth standing in for it) leaves keypoints unlifted.
+    z_img = np.where(np.isfinite(z_img) & (z_img > 0), z_img, np.nan)
     pts_img = cameras.lift(uv_img, z_img, pair.K_image)
 
     diff_img = diff_dep = geo_img = geo_dep = None
@@ -230,18 +232,17 @@ def compute_features(
         diff_img = features.sample_features(f_img, uv_img, pair.image_size)
         diff_dep = features.sample_features(f_dep, uv_dep, pair.depth_size)
     if geometric:
-        # As the official code: the monocular map loses its edge pixels (``cfg.edge_filter_m``)
-        # and its depths outside the range before back-projection; the depth side's cloud is
-        # the back-projection of the depth map the pipeline uses, not a stored or wider cloud.
+        # As the official code (``projection.feature_cloud``): the monocular map loses its edge
+        # pixels (``cfg.edge_filter_m``, on the map as it is), then both maps are cut to the
+        # back-projection's range (``cfg.cloud_near_m``..``cfg.cloud_far_m``) and the depth range;
+        # the depth side's cloud is the back-projection of the depth map the pipeline uses (its
+        # densified PNG), not a stored or wider cloud.
         # Both clouds stay in their own camera's frame (the official ``extrinsic=np.eye(4)``):
         # FCGF is not rotation invariant, and a depth side turned into the cloud's frame (z up
         # where the image side has z forward) would hand it the two halves of a pair in frames
         # it never saw together. Normals face each camera's origin, so FPFH signs agree.
-        mono_cloud = np.where((mono > cfg.depth_min) & (mono < cfg.depth_max), mono, 0.0)
-        if cfg.edge_filter_m > 0:
-            mono_cloud = projection.edge_filter(mono_cloud, cfg.edge_filter_m)
-        cloud_img, _ = cameras.backproject(mono_cloud, pair.K_image)
-        cloud_dep, _ = cameras.backproject(view.dense, pair.K_depth)
+        cloud_img, _ = projection.feature_cloud(mono, pair.K_image, cfg, monocular=True)
+        cloud_dep, _ = projection.feature_cloud(view.hint_depth, pair.K_depth, cfg, monocular=False)
         good = np.isfinite(pts_img).all(1)
         # ``at``: only the features the keypoints will read are computed.
         down_img, feats_img = geo.geometric_features(cloud_img, cfg, at=pts_img[good], backend=backend)
