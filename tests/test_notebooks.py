@@ -189,11 +189,13 @@ def _check_benchmark_outputs(out_dir: Path, params: dict) -> None:
     rows = batch.read_rows(out_dir)
     assert rows and len({r["pair"] for r in rows}) == params["n_pairs"]
     results = pd.read_csv(out_dir / "results.csv")
+    base = results[results["method"] == "Position-only"]  # the baseline row, with each solver of the run
+    assert set(base["solver"]) == set(results["solver"]), results
     if params["dataset"] in ("icl", "demo"):  # the stub has no diffusion features for real frames: FreeReg-G only
-        assert set(results["method"]) == {"FreeReg-G"}
+        assert set(results["method"]) == {"FreeReg-G", "Position-only"}
         assert set(results["solver"]) == {"kabsch", "pnp"}
     else:
-        assert set(results["method"]) == {"FreeReg-D", "FreeReg-G", "FreeReg"}
+        assert set(results["method"]) == {"FreeReg-D", "FreeReg-G", "FreeReg", "Position-only"}
     side = pd.read_csv(out_dir / "table1_side_by_side.csv")
     assert set(side["paper_dataset"]) == {"Kitti-DC" if "outdoor" in params["dataset"] else "3DMatch"}
     md = (out_dir / "table1_side_by_side.md").read_text()
