@@ -183,8 +183,8 @@ def test_non_ema_variant_reads_the_non_ema_file_for_real(tmp_path):
 def test_readme_download_command_fetches_the_non_ema_unet():
     cmd = W.download_command(W.SD15_ID, Path("weights"))
     assert f'"{UNET_NON_EMA}"' in cmd and '"unet/config.json"' in cmd and '"unet/*"' not in cmd
-    readme = (ROOT / "README.md").read_text()
-    weights_section = readme.split("### Weights", 1)[1].split("\n### ", 1)[0]
+    page = (ROOT / "docs" / "real_data.md").read_text()
+    weights_section = page.split("\n## Weights", 1)[1].split("\n## ", 1)[0]
     assert f'"{UNET_NON_EMA}"' in weights_section and '"unet/*"' not in weights_section
 
 

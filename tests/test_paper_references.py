@@ -114,7 +114,7 @@ def _documents() -> list[tuple[str, str]]:
         cells = json.loads(nb.read_text(encoding="utf-8"))["cells"]
         docs += [(f"{nb.relative_to(ROOT)} cell {i}", "".join(c["source"])) for i, c in enumerate(cells)]
     paths = [ROOT / "README.md", ROOT / "assignments" / "README.md", ROOT / "figures" / "README.md",
-             ROOT / "benchmarks" / "README.md", ROOT / "Makefile"]
+             ROOT / "benchmarks" / "README.md", ROOT / "Makefile"] + sorted((ROOT / "docs").glob("*.md"))
     paths += sorted((ROOT / "freereg_lib").rglob("*.py")) + sorted((ROOT / "benchmarks").glob("*.py"))
     paths += [p for ext in ("yaml", "yml", "md", "txt") for p in sorted((ROOT / "freereg_lib" / "data").rglob(f"*.{ext}"))]
     docs += [(str(p.relative_to(ROOT)), p.read_text(encoding="utf-8")) for p in paths if p.is_file()]
@@ -205,7 +205,7 @@ def test_the_repository_cites_the_paper_right():
 
 def test_the_scan_reads_the_notebooks_and_the_library():
     wheres = {w.split(" cell ")[0] for w, _ in DOCS}
-    assert {"README.md", "freereg_lib/plots.py", "notebooks/04_benchmark.ipynb"} <= wheres
+    assert {"README.md", "docs/micro_models.md", "freereg_lib/plots.py", "notebooks/04_benchmark.ipynb"} <= wheres
     refs = sum(len(FIG_RE.findall(t)) + len(TABLE_RE.findall(t)) for _, t in DOCS)
     assert refs > 30, f"only {refs} figure / table references found: is the scan reading the files?"
 
