@@ -99,6 +99,7 @@ def iter_pairs(
         kind = name.split("_")[1]
         for k in range(index, n_pairs if n_pairs is not None else 10, count):
             pair_seed = seed * 1_000_003 + k
+            synthetic.check_eval_seed(pair_seed)  # raised, not recorded: no pair may be a training room
             yield load_or_record(f"synthetic-{kind}/seed{pair_seed:04d}", synthetic.make_pair, kind, seed=pair_seed)
         return
     if name == "icl":

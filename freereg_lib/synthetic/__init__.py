@@ -25,6 +25,8 @@ from __future__ import annotations
 from .outdoor import CAMERA_HEIGHT_OUTDOOR, LIDAR_AZIMUTH_STEPS, LIDAR_ELEVATIONS_DEG, LIDAR_HEIGHT
 from .pairs import DEFAULT_IMAGE_SIZE, KINDS, MAX_POINTS, make_pair, make_pairs, overlap_ratio
 from .render import CLASS_NAMES
+from .seeds import TRAINING_STREAMS, TrainingSeedError, check_eval_seed
 
 __all__ = ["CLASS_NAMES", "KINDS", "DEFAULT_IMAGE_SIZE", "MAX_POINTS", "LIDAR_HEIGHT", "LIDAR_ELEVATIONS_DEG",
-           "LIDAR_AZIMUTH_STEPS", "CAMERA_HEIGHT_OUTDOOR", "make_pair", "make_pairs", "overlap_ratio"]
+           "LIDAR_AZIMUTH_STEPS", "CAMERA_HEIGHT_OUTDOOR", "make_pair", "make_pairs", "overlap_ratio",
+           "TRAINING_STREAMS", "TrainingSeedError", "check_eval_seed"]

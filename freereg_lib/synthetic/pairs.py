@@ -20,6 +20,7 @@ from freereg_lib.pair import Pair
 from .indoor import _indoor_camera, _indoor_scene, _indoor_sensor, _same_pose
 from .outdoor import LIDAR_ELEVATIONS_DEG, _depth_view_of_lidar, _lidar_dirs, _outdoor_camera, _outdoor_lidar, _outdoor_scene
 from .render import _Looks
+from .seeds import check_eval_seed
 
 KINDS = ("indoor", "outdoor")
 DEFAULT_IMAGE_SIZE = {"indoor": (480, 640), "outdoor": (256, 832)}
@@ -92,7 +93,8 @@ def make_pair(
     ``T_pc_sensor`` the depth camera in the world, ``T_cam_pc`` the world in the camera.
 
     ``seed`` may also be a tuple of integers (a NumPy seed sequence), as the micro models'
-    training pairs are drawn, so that no integer evaluation seed reproduces them.
+    training pairs are drawn. An integer seed that NumPy would turn into a training stream's
+    sequence (its low 32 bits a training tag, :mod:`.seeds`) raises ``TrainingSeedError``.
 
     ``depth_camera_image=True`` also shades the RGB image the depth camera would have seen,
     ``(H_d, W_d, 3) uint8`` in ``pair.meta["depth_camera_image"]`` (a diagnostic no real
@@ -105,6 +107,8 @@ def make_pair(
     if kind not in KINDS:
         raise ValueError(f"unknown synthetic kind {kind!r}; expected one of {KINDS}")
     lo, hi = _check_overlap(overlap)
+    if isinstance(seed, (int, np.integer)):
+        check_eval_seed(seed)  # an integer never draws a training room (tuples are training's own form)
     H, W = image_size if image_size is not None else DEFAULT_IMAGE_SIZE[kind]
     size = (int(H), int(W))
     # Focal lengths of the reference sensors (Kinect-like 525 px at 640 wide; KITTI's

@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from .evaluate import bootstrap_ci, paired_permutation_p
+from .splits import guard_eval_seed
 
 VARIANTS = ("freereg_d", "hint_from_frame", "appearance_redrawn", "generation_oracle", "same_modality")
 # The paired tests reported: the hint's cost, the generation's (split at the colours no depth
@@ -226,6 +227,7 @@ def main(argv=None) -> int:
     p.add_argument("--random-weights", action="store_true", help="the same architecture with random weights")
     p.add_argument("--out", default=None, help="write the result as JSON here")
     args = p.parse_args(argv)
+    guard_eval_seed(args.seed, args.pairs)  # no pair may draw a training room
     result = diagnose(args.pairs, args.seed, args.weights, args.random_weights, args.noise_seed)
     print(report(result))
     if args.out:

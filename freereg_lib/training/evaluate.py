@@ -5,8 +5,8 @@
         [--random-from eval.json] [--out eval.json]
 
 Runs FreeReg-D (decoder layers 0, 4, 6; PnP-RANSAC) through :func:`freereg_lib.pipeline.run_pairs`
-on synthetic indoor pairs made from integer seeds, which the training rooms (a two-word seed
-sequence, :mod:`.views`) never use, once with the ``micro`` backend's trained weights and
+on synthetic indoor pairs made from integer seeds, kept off the training rooms' two-word seed
+sequence (:mod:`.views`) by :func:`freereg_lib.synthetic.check_eval_seed`, once with the ``micro`` backend's trained weights and
 once with the same architecture's random weights. Prints IR, FMR and RR with 95 % bootstrap
 intervals over pairs, the ratio of the mean IRs and a paired sign-flip permutation test.
 ``--random-from`` takes the random-weight run from an earlier result of the same pairs, noise
@@ -20,6 +20,8 @@ import math
 from pathlib import Path
 
 import numpy as np
+
+from .splits import guard_eval_seed
 
 VARIANT = ("FreeReg-D", "pnp")
 PERMUTATIONS = 20000  # sign flips of the paired test; its smallest p is 1 / (PERMUTATIONS + 1)
@@ -153,6 +155,7 @@ def main(argv=None) -> int:
                         "run is reused instead of run again")
     p.add_argument("--out", default=None, help="write the result as JSON here")
     args = p.parse_args(argv)
+    guard_eval_seed(args.seed, args.pairs)  # no pair may draw a training room
     changes = config_changes(args)
     which = ("trained",) if args.trained_only else ("trained", "random")
     random_from = json.loads(Path(args.random_from).read_text()) if args.random_from else None

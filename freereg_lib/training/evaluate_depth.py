@@ -4,7 +4,8 @@
         [--weights freereg_lib/micro/weights/depth] [--figure figures/02_micro_depth.png]
 
 On synthetic indoor pairs (``make_pairs(n, "indoor", seed)``; the training rooms come from a
-stream no integer seed reproduces), each 480 x 640 image's depth is predicted through the full
+stream that the seed guard, :func:`freereg_lib.synthetic.check_eval_seed`, keeps evaluation
+off), each 480 x 640 image's depth is predicted through the full
 :class:`~freereg_lib.backends.zoedepth.ZoeDepthEstimator` path (padding, flip averaging, bicubic
 resize) by the trained micro ZoeDepth and by the same architecture with random weights, beside
 the stub's designed error (``StubBackend(cfg).mono_depth(image, depth_gt)``).
@@ -26,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from ..micro import depth as MD
+from .splits import guard_eval_seed
 
 BINS = ((0.0, 2.0), (2.0, 4.0), (4.0, np.inf))
 EDGE_RANGE_M, EDGE_WINDOW = 0.2, 7
@@ -276,6 +278,7 @@ def main(argv=None) -> int:
     from ..synthetic import make_pairs
 
     args = parse_args(argv)
+    guard_eval_seed(args.seed, args.pairs)  # no pair may draw a training room
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
     pairs = make_pairs(args.pairs, "indoor", seed=args.seed, progress=True)

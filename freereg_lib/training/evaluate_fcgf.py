@@ -4,7 +4,8 @@
         [--fcgf DIR] [--kabsch-scoring matches] [--out DIR/eval.json]
 
 On synthetic indoor pairs from integer seeds (the training pairs come from a two-word seed
-sequence, :mod:`.train_fcgf`, which no integer seed reproduces):
+sequence, :mod:`.train_fcgf`, which the seed guard keeps evaluation off), every method under the
+same noise seed (``--noise-seed``, 0 by default, as :mod:`.evaluate` and :mod:`.evaluate_split`):
 
 1. **Features alone** (``clouds``): the image side gets its *true* depth, so only the
    descriptors differ. The pipeline's keypoints, geometric descriptors only (w = 0), mutual
@@ -27,6 +28,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .evaluate import bootstrap_ci, paired_permutation_p
+from .splits import guard_eval_seed
 
 CHAIN_VARIANTS = (("FreeReg-G", "kabsch"), ("FreeReg-G", "pnp"), ("FreeReg", "kabsch"), ("FreeReg", "pnp"))
 PAPER = {"FreeReg-G IR": 31.4, "FreeReg-G FMR": 90.7, "FreeReg-G RR (Kabsch)": 50.4}
@@ -201,11 +203,17 @@ def main(argv=None) -> int:
                    help="the chain's geometric descriptor: the micro FCGF, or FPFH beside the micro depth")
     p.add_argument("--kabsch-scoring", default="official", choices=("official", "open3d"),
                    help="Kabsch-RANSAC scoring: official (open3d 0.12's algorithm, the paper's) or open3d (the installed call)")
+    p.add_argument("--noise-seed", type=int, default=0,
+                   help="the config's seed (diffusion noise and RANSAC draws) for every method; default 0")
     p.add_argument("--out", default=None, help="write the result as JSON here (merged into an existing file)")
     args = p.parse_args(argv)
-    cfg = FreeRegConfig(seed=args.seed, kabsch_scoring=args.kabsch_scoring)
+    guard_eval_seed(args.seed, args.pairs)  # no pair may draw a training room
+    # One noise-seed rule for every method and command: the config's seed (the diffusion noise and
+    # RANSAC draws) is --noise-seed, 0 by default as in evaluate / evaluate_split, never the pair seed.
+    cfg = FreeRegConfig(seed=args.noise_seed, kabsch_scoring=args.kabsch_scoring)
     pairs = synthetic.make_pairs(args.pairs, "indoor", seed=args.seed, progress=True)
-    result = {"n_pairs": args.pairs, "seed": args.seed, "kabsch_scoring": args.kabsch_scoring}
+    result = {"n_pairs": args.pairs, "seed": args.seed, "noise_seed": args.noise_seed,
+              "kabsch_scoring": args.kabsch_scoring}
     if not args.skip_features:
         result["features"] = features_alone(pairs, cfg, fcgf_dir=args.fcgf)
     if not args.skip_chain:

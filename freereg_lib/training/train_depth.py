@@ -5,7 +5,7 @@
         [--export freereg_lib/micro/weights/depth]
 
 Data: the cached training views (:mod:`.views`, the same ``views_indoor.npz`` the diffusion
-models use; rooms from a training stream no evaluation seed reproduces). The last 20 rooms'
+models use; rooms from a training stream evaluation seeds are kept off). The last 20 rooms'
 views are held out for validation, as in :mod:`.train_diffusion`.
 
 Pre- and post-processing are the inference path's

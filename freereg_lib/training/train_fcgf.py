@@ -9,7 +9,7 @@ writes load with :func:`~freereg_lib.backends.fcgf.load_fcgf` exactly as the off
 checkpoints do.
 
 Data (:func:`training_pairs`): pair ``k`` is ``synthetic.make_pair("indoor", seed=(TRAIN_STREAM,
-k))``, a seed sequence no integer evaluation seed reproduces. Its two clouds are the ones the
+k))``, a seed sequence that evaluation refuses to reach (:func:`freereg_lib.synthetic.check_eval_seed`). Its two clouds are the ones the
 pipeline gives FCGF at inference (:func:`freereg_lib.pipeline.compute_features`):
 
 * image side: the image's depth (here the true one), range-limited and edge-filtered as the
@@ -48,9 +48,10 @@ from pathlib import Path
 import numpy as np
 
 from ..micro.fcgf import VOXEL, build, save
+from ..synthetic.seeds import TRAIN_FCGF_PAIRS
 from .views import progress_map
 
-TRAIN_STREAM = 0xF3EE_0002
+TRAIN_STREAM = TRAIN_FCGF_PAIRS  # 0xF3EE0002
 CACHE_FRAMES = "camera-camera+cloud-view"  # both clouds in their camera's frame, and the image camera's cloud view
 IMAGE_SIDES = ("depth", "cloud", "mix")
 POS_RADIUS = 1.5 * VOXEL  # FCGF: positive_pair_search_voxel_size_multiplier x voxel

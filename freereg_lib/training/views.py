@@ -1,7 +1,9 @@
 """Training views for the micro models, rendered from the synthetic world.
 
-Scenes are drawn from ``numpy.random.default_rng((TRAIN_STREAM, k))``: a seed sequence of two
-words, which no integer seed of :func:`freereg_lib.synthetic.make_pair` can reproduce, so no
+Scenes are drawn from ``numpy.random.default_rng((TRAIN_STREAM, k))`` (:func:`room_rng`): a seed
+sequence of two words. NumPy reads the integer ``TRAIN_STREAM + k * 2**32`` as the same two words,
+so an integer seed *can* reproduce room ``k``; evaluation refuses such seeds
+(:func:`freereg_lib.synthetic.check_eval_seed`, in ``make_pair`` and the evaluation commands), so no
 evaluation pair shares a room with the training data.
 
 Each view is a camera of a training room rendered at the synthetic pairs' size (480 x 640),
@@ -25,10 +27,17 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-TRAIN_STREAM = 0xF3EE_0001
+from ..synthetic.seeds import TRAIN_ROOMS
+
+TRAIN_STREAM = TRAIN_ROOMS  # 0xF3EE0001
 RENDER_HW = (480, 640)
 DIFFUSION_HW = (128, 192)
 DEPTH_HW = (120, 160)
+
+
+def room_rng(k: int) -> np.random.Generator:
+    """The generator of training room ``k``."""
+    return np.random.default_rng((TRAIN_STREAM, int(k)))
 
 
 def _scene_views(args) -> dict[str, np.ndarray]:
@@ -47,7 +56,7 @@ def _scene_views(args) -> dict[str, np.ndarray]:
     if kind != "indoor":
         raise ValueError(f"training views exist for the indoor world only, got kind={kind!r}")
     cfg = FreeRegConfig()
-    rng = np.random.default_rng((TRAIN_STREAM, int(k)))
+    rng = room_rng(k)
     scene, room = _indoor_scene(rng)
     H, W = RENDER_HW
     f = 525.0 * W / 640

@@ -1,0 +1,189 @@
+"""The committed micro models on a split (:mod:`.splits`): FreeReg-D, FreeReg-G, fused FreeReg,
+each with Kabsch-RANSAC and PnP-RANSAC, on the same pairs with the same noise draws.
+
+    python -m freereg_lib.training.evaluate_split --split test [--pairs 100] [--shard 0/2]
+        --rows runs/micro/test_split/rows.jsonl
+    python -m freereg_lib.training.evaluate_split --split test --summarize
+        --rows runs/micro/test_split/rows.jsonl --out freereg_lib/micro/weights/test_split.json
+
+Per pair the micro backend's features are computed once (diffusion decoder layers 0, 4, 6; the
+micro depth with FPFH, the backend's geometric default), then the three methods (w = 1, 0 and the
+config's 0.5) are matched and solved with both solvers (:func:`freereg_lib.pipeline.variant_rows`),
+under the config's defaults with ``seed`` = the split's noise seed (0) for every method. Each pair's
+rows are appended to ``--rows`` (JSON lines) as it finishes, so shards can run as separate processes
+and a stopped run resumes. ``--summarize`` reads the rows of the longest complete prefix of pairs
+``0 .. n-1`` and writes IR, FMR and RR (%) with 95 % bootstrap intervals over pairs per method and
+solver, the paired permutation tests of fused FreeReg against each half (IR; Kabsch RR), and the
+command lines that made them.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .evaluate import bootstrap_ci, paired_permutation_p
+from .splits import SPLITS
+
+METHODS = ("FreeReg-D", "FreeReg-G", "FreeReg")
+SOLVERS = ("kabsch", "pnp")
+VARIANTS = tuple((m, s) for m in METHODS for s in SOLVERS)
+ROW_KEYS = ("method", "solver", "w", "n_matches", "IR", "IN", "RE", "TE", "registered", "n_evaluable", "error")
+
+
+def _done(rows_path: Path) -> set[int]:
+    if not rows_path.exists():
+        return set()
+    return {json.loads(line)["k"] for line in rows_path.read_text().splitlines() if line.strip()}
+
+
+def run(split_name: str, n_pairs: int, rows_path: Path, shard: str = "0/1", weights_dir=None,
+        progress: bool = True) -> None:
+    """Append the rows of the split's pairs ``k < n_pairs`` with ``k % n == i`` (``shard = "i/n"``)
+    not yet in ``rows_path``."""
+    from tqdm import tqdm
+
+    from .. import pipeline, synthetic
+    from ..backends import get_backend
+    from ..config import FreeRegConfig
+
+    split = SPLITS[split_name]
+    i, n = (int(x) for x in shard.split("/"))
+    cfg = FreeRegConfig(seed=split.noise_seed)
+    backend = get_backend("micro", cfg, device="cpu", weights_dir=weights_dir)
+    done = _done(rows_path)
+    todo = [k for k in range(n_pairs) if k % n == i and k not in done]
+    rows_path.parent.mkdir(parents=True, exist_ok=True)
+    for k in tqdm(todo, desc=f"{split.name} split, shard {shard}", disable=not progress):
+        seed = split.pair_seeds(k + 1)[k]
+        synthetic.check_eval_seed(seed)
+        t0 = time.time()
+        pair = synthetic.make_pair("indoor", seed=seed)
+        rows = pipeline.run_pair(pair, backend, cfg, VARIANTS)
+        rec = {"k": k, "pair_seed": seed, "pair": pair.name, "seconds": round(time.time() - t0, 1),
+               "label": backend.label,
+               "rows": [{key: _plain(r.get(key)) for key in ROW_KEYS} for r in rows]}
+        with open(rows_path, "a") as fh:
+            fh.write(json.dumps(rec) + "\n")
+
+
+def _plain(v):
+    if isinstance(v, (np.floating, float)):
+        return None if math.isnan(float(v)) else float(v)
+    if isinstance(v, (np.integer, np.bool_)):
+        return v.item()
+    return v
+
+
+def load_rows(rows_path: Path) -> list[dict]:
+    """The per-pair records of the longest complete prefix ``k = 0 .. n-1`` (one record per pair)."""
+    recs = {}
+    for line in Path(rows_path).read_text().splitlines():
+        if line.strip():
+            r = json.loads(line)
+            recs.setdefault(r["k"], r)
+    n = 0
+    while n in recs:
+        n += 1
+    return [recs[k] for k in range(n)]
+
+
+def _stat(v) -> dict:
+    v = np.asarray(v, dtype=np.float64)
+    lo, hi = bootstrap_ci(v)
+    return {"mean": 100 * float(v.mean()), "ci": [100 * lo, 100 * hi]}
+
+
+def summarize(recs: list[dict], split_name: str) -> dict:
+    from ..config import FreeRegConfig
+
+    split = SPLITS[split_name]
+    cfg = FreeRegConfig(seed=split.noise_seed)
+    per = {}
+    for m, s in VARIANTS:
+        rows = [next(r for r in rec["rows"] if r["method"] == m and r["solver"] == s) for rec in recs]
+        ir = [r["IR"] for r in rows]
+        reg = [float(bool(r["registered"])) for r in rows]
+        per[f"{m} {s}"] = {"IR": _stat(ir), "FMR": _stat(np.asarray(ir) > cfg.fmr_ratio), "RR": _stat(reg),
+                           "errors": sum(1 for r in rows if r["error"]),
+                           "IR_per_pair": ir, "registered_per_pair": [int(x) for x in reg]}
+    tests = {}
+    for other in ("FreeReg-D", "FreeReg-G"):
+        a, b = per["FreeReg kabsch"]["IR_per_pair"], per[f"{other} kabsch"]["IR_per_pair"]
+        tests[f"IR: FreeReg - {other}"] = {"diff": 100 * float(np.mean(a) - np.mean(b)),
+                                           "p": paired_permutation_p(a, b)}
+        for s in SOLVERS:
+            a, b = per[f"FreeReg {s}"]["registered_per_pair"], per[f"{other} {s}"]["registered_per_pair"]
+            tests[f"RR {s}: FreeReg - {other}"] = {"diff": 100 * float(np.mean(a) - np.mean(b)),
+                                                  "p": paired_permutation_p(a, b)}
+    return {
+        "split": split.name, "dataset_seed": split.seed, "noise_seed": split.noise_seed,
+        "pair_seeds": f"{split.seed} * 1_000_003 + k for k in 0..{len(recs) - 1}",
+        "n_pairs": len(recs), "use": split.use, "backend": recs[0]["label"] if recs else None,
+        "config": {"fusion_w": cfg.fusion_w, "layers": list(cfg.layers), "geometric": cfg.geometric,
+                   "ransac_iters": cfg.ransac_iters, "kabsch_scoring": cfg.kabsch_scoring,
+                   "tau_c": cfg.tau_c, "fmr_ratio": cfg.fmr_ratio, "rr_rot_deg": cfg.rr_rot_deg,
+                   "rr_trans_m": cfg.rr_trans_m},
+        "results": per, "tests": tests,
+        "seconds_per_pair": float(np.mean([r["seconds"] for r in recs])) if recs else None,
+        "note": "IR per method is the same for both solvers (one set of matches per method); "
+                "p: two-sided paired sign-flip permutation test over pairs; intervals: 95 % percentile bootstrap.",
+    }
+
+
+def report(res: dict) -> str:
+    lines = [f"{res['split']} split: {res['n_pairs']} synthetic indoor pairs ({res['pair_seeds']}), "
+             f"noise seed {res['noise_seed']}, {res['backend']}"]
+    for key, r in res["results"].items():
+        f = lambda s: f"{s['mean']:5.1f} [{s['ci'][0]:.1f}, {s['ci'][1]:.1f}]"  # noqa: E731
+        lines.append(f"  {key:18s} IR {f(r['IR'])}  FMR {f(r['FMR'])}  RR {f(r['RR'])}")
+    for key, t in res["tests"].items():
+        lines.append(f"  {key}: {t['diff']:+.1f} points, p = {t['p']:.4f}")
+    return "\n".join(lines)
+
+
+def _git_head() -> str | None:
+    try:
+        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
+    except Exception:
+        return None
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--split", default="test", choices=sorted(SPLITS))
+    p.add_argument("--pairs", type=int, default=None, help="default: the split's size")
+    p.add_argument("--shard", default="0/1", help="i/n: this process runs pairs k with k %% n == i")
+    p.add_argument("--weights", default=None, help="micro weights folder (default: the committed ones)")
+    p.add_argument("--rows", required=True, help="per-pair rows (JSON lines), appended to")
+    p.add_argument("--summarize", action="store_true", help="summarize --rows into --out instead of running")
+    p.add_argument("--out", default=None)
+    p.add_argument("--run-command", action="append", default=[],
+                   help="(with --summarize) a command line that produced the rows, recorded in the JSON")
+    args = p.parse_args(argv)
+    split = SPLITS[args.split]
+    rows = Path(args.rows)
+    if not args.summarize:
+        run(args.split, args.pairs or split.n_pairs, rows, args.shard, args.weights)
+        return 0
+    res = summarize(load_rows(rows), args.split)
+    res["commands"] = args.run_command + ["python -m freereg_lib.training.evaluate_split " + " ".join(
+        sys.argv[1:] if argv is None else argv)]
+    res["git_head"] = _git_head()
+    res["machine"] = f"{platform.processor() or platform.machine()}, {platform.python_version()}"
+    print(report(res))
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(res, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
