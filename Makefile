@@ -13,7 +13,9 @@ RUN ?= runs/reproduce
 reproduce: .venv/.installed
 	$(PY) -m freereg_lib.reproduce --out $(RUN)
 
-# The executed notebooks of $(RUN) as a static HTML site, $(RUN)/site/index.html (nbconvert).
+# The executed notebooks of $(RUN), the pages of docs/ and an API reference from the docstrings as one
+# static HTML site, $(RUN)/site/index.html (freereg_lib/site.py: nbconvert for the notebooks, its markdown
+# renderer for docs/, the source read with ast for the API).
 book: .venv/.installed
 	$(PY) -m freereg_lib.site $(RUN)
 

@@ -7,7 +7,9 @@ template plus navigation): previous / next links on every page, a table of conte
 each notebook page built from its headings, and the backend named on every page. The index page
 is itself a notebook made here and rendered the same way: the notebooks with their backends, and a
 table mapping every paper float the companion re-draws (:data:`PAPER_FLOATS`) to its notebook
-section and figure (a thumbnail under ``site/figures/``).
+section and figure (a thumbnail under ``site/figures/``), and links to the reference pages. After the
+notebooks come the pages of ``docs/`` and an API reference made from the docstrings, one page per
+module (:mod:`freereg_lib.site_docs`); previous / next run through all of them in that order.
 
 :func:`write_gallery` writes the README's gallery: compact copies (at most ``max_width`` pixels
 wide and ``max_bytes`` each) of the key figures of the run (:data:`GALLERY`) into
@@ -217,7 +219,7 @@ def _float_rows(pages: list[Page], figures_dir: Path, site: Path) -> list[str]:
     return rows
 
 
-def _index_notebook(pages: list[Page], figures_dir: Path, site: Path, run_dir: Path) -> Any:
+def _index_notebook(pages: list[Page], figures_dir: Path, site: Path, run_dir: Path, refs: Sequence = ()) -> Any:
     import nbformat
 
     backends = {}
@@ -242,6 +244,15 @@ def _index_notebook(pages: list[Page], figures_dir: Path, site: Path, run_dir: P
                  "Numbers as in the paper (FreeReg, ICLR 2024); each row links to the notebook section that "
                  "re-draws the float, with the figure this run drew (click for a larger copy; the notebook page "
                  "has it at full size).\n\n" + "\n".join(float_rows))]
+    docs = [r for r in refs if not r.stem.startswith("api")]
+    api = next((r for r in refs if r.stem == "api"), None)
+    if docs or api:
+        lines = [f"- [{r.title}]({r.href}) (`{r.source}`)" for r in docs]
+        if api is not None:
+            lines.append(f"- [API reference]({api.href}): one page per module of `freereg_lib`, from its docstrings")
+        cells.append(nbformat.v4.new_markdown_cell(
+            "## Reference pages\n\nThe pages of `docs/` (the README links them), the benchmarks' results, the "
+            "teacher's guide and the model cards, then the API reference.\n\n" + "\n".join(lines)))
     nb = nbformat.v4.new_notebook(cells=cells)
     nb.metadata["title"] = "FreeReg companion"
     return nb
@@ -258,11 +269,14 @@ def _export(nb: Any, resources: dict) -> str:
     return body
 
 
-def build_site(run_dir: str | Path, out: str | Path | None = None, figures_dir: str | Path | None = None) -> Path:
-    """Render the run's executed notebooks and an index into ``out`` (default ``<run>/site``).
+def build_site(run_dir: str | Path, out: str | Path | None = None, figures_dir: str | Path | None = None,
+               docs_dir: str | Path | None = None, api: bool = True) -> Path:
+    """Render the run's executed notebooks, an index, the docs pages and the API reference into ``out``
+    (default ``<run>/site``).
 
     ``figures_dir``: where the run's notebooks wrote their figures (default ``<run>/figures`` when it
-    exists, else the repository's ``figures/``). Returns the index page.
+    exists, else the repository's ``figures/``). ``docs_dir``: the markdown pages (default ``docs/``);
+    ``api=False`` leaves the API reference out. Returns the index page.
     """
     import nbformat
 
@@ -275,11 +289,19 @@ def build_site(run_dir: str | Path, out: str | Path | None = None, figures_dir: 
     if site.exists():
         shutil.rmtree(site)
     site.mkdir(parents=True)
+    from freereg_lib import site_docs
+
+    site_docs.WARNINGS.clear()
+    docs = site_docs.doc_pages() if docs_dir is None else site_docs.doc_pages(Path(docs_dir))
+    site_docs.link_pages(docs, site)
+    refs = docs + (site_docs.api_pages() if api else [])
+    for warning in site_docs.WARNINGS:
+        print(f"site: {warning}", file=sys.stderr)
 
     def link(page: Page | None) -> dict | None:
         return None if page is None else {"href": page.href, "title": page.title}
 
-    index_nb = _index_notebook(pages, figures_dir, site, run_dir)
+    index_nb = _index_notebook(pages, figures_dir, site, run_dir, refs)
     index_site = {"prev": None, "next": link(pages[0]), "toc": [],
                   "backend": ", ".join(dict.fromkeys(p.backend for p in pages)),
                   "backend_note": "Each notebook page names its own; see the list below."}
@@ -288,11 +310,13 @@ def build_site(run_dir: str | Path, out: str | Path | None = None, figures_dir: 
     for k, page in enumerate(pages):
         nb = nbformat.read(page.source, as_version=4)
         info = {"prev": link(pages[k - 1]) if k > 0 else {"href": "index.html", "title": "Contents"},
-                "next": link(pages[k + 1]) if k + 1 < len(pages) else None,
+                "next": link(pages[k + 1]) if k + 1 < len(pages) else (
+                    {"href": refs[0].href, "title": refs[0].title} if refs else None),
                 "toc": [h for h in page.headings if h.level in (2, 3)],
                 "backend": page.backend, "backend_note": BACKEND_NOTES.get(page.backend, "")}
         body = _export(nb, {"freereg": info, "metadata": {"name": page.title}})
         (site / page.href).write_text(body, encoding="utf-8")
+    site_docs.write_pages(refs, site, link(pages[-1]), None)
     return site / "index.html"
 
 
@@ -302,10 +326,11 @@ def main(argv: Iterable[str] | None = None) -> int:
     ap.add_argument("run", nargs="?", default="runs/reproduce", help="run folder with the executed notebooks")
     ap.add_argument("--out", default=None, help="site folder (default <run>/site)")
     ap.add_argument("--figures", default=None, help="the run's figures folder (default <run>/figures or figures/)")
+    ap.add_argument("--no-api", action="store_true", help="leave the API reference out")
     ap.add_argument("--gallery", action="store_true", help="also rewrite the README's gallery in figures/gallery/")
     args = ap.parse_args(list(argv) if argv is not None else None)
     try:
-        index = build_site(args.run, args.out, args.figures)
+        index = build_site(args.run, args.out, args.figures, api=not args.no_api)
     except SiteError as exc:
         print(f"site: {exc}", file=sys.stderr)
         return 1

@@ -5,11 +5,16 @@ the other notebooks copied there unexecuted (their headings are what the index l
 stays under a minute). From it ``freereg_lib.site.build_site`` writes the site, and:
 
 * every link and image of the index resolves on disk, each ``#anchor`` to an id of its page;
-* every page has previous / next links, names its backend, and each notebook page has a table of
-  contents whose links are ids of the page;
+* every page (the index, the notebooks, the docs pages, the API reference) has previous / next
+  links in one chain, names its backend and has no dead link; each notebook page and each longer
+  docs page has a table of contents whose links are ids of the page;
+* every ``docs/*.md`` is a page, their links between each other resolve (GitHub's heading anchors
+  to the renderer's ids), and every module of ``freereg_lib`` has an API page with its public
+  functions and their signatures;
 * headless Chromium (the Debian package; skipped with the reason when no binary is on PATH) opens
-  the index and notebook 00's page: no image is broken (``naturalWidth > 0``), which a page with a
-  missing image shows the check can see; a screenshot of the index is saved in the run folder;
+  the index, notebook 00's page, a docs page, a model card with its figure and an API page: no
+  image is broken (``naturalWidth > 0``), which a page with a missing image shows the check can
+  see; a screenshot of the index is saved in the run folder;
 * the executed copy has text progress bars and no Open3D banner;
 * the README's gallery: every figure it shows is in the repository, and small.
 """
@@ -132,9 +137,25 @@ def test_a_dead_link_or_anchor_is_caught(site, tmp_path):
     assert len(problems) == 2, problems
 
 
+def _chain(site: Path) -> list[Path]:
+    """The site's pages in the order of their "next" links, from the index."""
+    pages = [site / "index.html"]
+    while True:
+        nxt = re.search(r'<a [^>]*rel="next"[^>]*>', pages[-1].read_text(encoding="utf-8"))
+        if not nxt:
+            return pages
+        pages.append(site / re.search(r'href="([^"]+)"', nxt.group(0)).group(1))
+        assert pages[-1] not in pages[:-1], f"the chain loops at {pages[-1].name}"
+
+
 def test_every_page_has_navigation_a_contents_and_its_backend(site, run):
-    pages = [site / "index.html"] + [site / f"{p.stem}.html" for p in sorted(run.glob("[0-9][0-9]_*.ipynb"))]
-    assert all(p.is_file() for p in pages)
+    notebooks = [site / f"{p.stem}.html" for p in sorted(run.glob("[0-9][0-9]_*.ipynb"))]
+    pages = _chain(site)
+    assert pages[:len(notebooks) + 1] == [site / "index.html"] + notebooks, [p.name for p in pages]
+    rest = {p.name for p in pages[len(notebooks) + 1:]}
+    assert {f"{d.stem}.html" for d in (ROOT / "docs").glob("*.md")} <= rest, rest
+    assert {"api.html", "api_freereg_lib_pose.html", "benchmarks.html"} <= rest, rest
+    assert set(pages) == set(site.glob("*.html")), "a page outside the previous / next chain"
     for k, page in enumerate(pages):
         text = page.read_text(encoding="utf-8")
         assert text.count('class="freereg-nav"') == 2, f"{page.name}: navigation at the top and the bottom"
@@ -144,7 +165,7 @@ def test_every_page_has_navigation_a_contents_and_its_backend(site, run):
             assert f'href="{pages[k + 1].name}"' in text and 'rel="next"' in text
         assert re.search(r'class="freereg-backend">Backend: <strong>\w', text), f"{page.name}: no backend named"
         assert not _check_refs(page, site), _check_refs(page, site)
-        if k > 0:
+        if 0 < k <= len(notebooks) or page.name in ("micro_models.html", "real_data.html", "fidelity.html", "api_freereg_lib_pose.html"):
             toc = re.search(r'<nav aria-label="contents of this page" class="freereg-toc">(.*?)</nav>', text, re.S)
             assert toc, f"{page.name}: no table of contents"
             anchors = re.findall(r'href="#([^"]+)"', toc.group(1))
@@ -154,6 +175,49 @@ def test_every_page_has_navigation_a_contents_and_its_backend(site, run):
             assert not missing, f"{page.name}: contents entries without their heading: {missing}"
     assert 'Backend: <strong>stub</strong>' in (site / f"{EXECUTED}.html").read_text(encoding="utf-8")
     assert 'Backend: <strong>micro</strong>' in (site / "01_diffusion_features.html").read_text(encoding="utf-8")
+
+
+def test_the_docs_pages_and_the_api_reference(site):
+    from freereg_lib import site_docs as D
+
+    assert not D.WARNINGS, "docs links that lead nowhere:\n" + "\n".join(D.WARNINGS)
+    index = (site / "index.html").read_text(encoding="utf-8")
+    for md in (ROOT / "docs").glob("*.md"):
+        assert f'href="{md.stem}.html"' in index, f"the index does not link docs/{md.name}"
+    assert 'href="api.html"' in index
+    # A link between docs pages, written with GitHub's anchor, lands on the renderer's id.
+    perf = (site / "performance.html").read_text(encoding="utf-8")
+    assert "Kabsch-RANSAC scoring, measured" in perf and "<table>" in perf
+    troubles = (site / "troubleshooting.html").read_text(encoding="utf-8")
+    assert "When something goes wrong" in troubles and troubles.count("<tr>") > 50
+    # The model card's figure is copied with the page; a repository file without a page is text.
+    card = (site / "model_card_diffusion.html").read_text(encoding="utf-8")
+    assert 'src="assets/freereg_lib/micro/weights/loss_curves.png"' in card
+    assert (site / "assets/freereg_lib/micro/weights/loss_curves.png").is_file()
+    # The API reference: every module, its public functions with their signatures.
+    api = (site / "api.html").read_text(encoding="utf-8")
+    for name, _ in D._modules(ROOT / "freereg_lib"):
+        assert f'href="api_{name.replace(".", "_")}.html"' in api, name
+    pose = (site / "api_freereg_lib_pose.html").read_text(encoding="utf-8")
+    assert 'Backend: <strong>any</strong>' in pose
+    assert re.search(r'<h2 id="kabsch_ransac"', pose) and "def kabsch_ransac(" in html_unescape(re.sub(r"<[^>]+>", "", pose))
+    assert "Kabsch" in pose  # its docstring
+
+
+def test_a_docs_link_to_a_missing_heading_is_reported(tmp_path):
+    from freereg_lib import site_docs as D
+
+    docs = tmp_path / "docs"
+    docs.mkdir()
+    (docs / "a.md").write_text("# A\n\n## Part one\n\nSee [b](b.md#part-two), [gone](b.md#nowhere) and [one](#part-one).\n")
+    (docs / "b.md").write_text("# B\n\n## Part two\n\nBack to [a](a.md).\n")
+    D.WARNINGS.clear()
+    pages = [p for p in D.doc_pages(docs) if p.stem in ("a", "b")]
+    D.link_pages(pages, tmp_path / "site")
+    a = pages[0].body
+    assert 'href="b.html#Part-two"' in a and 'href="#Part-one"' in a and 'href="b.html"' in a
+    assert D.WARNINGS == [f"{(docs / 'a.md')}: no heading for #nowhere in {docs / 'b.md'}"], D.WARNINGS
+    D.WARNINGS.clear()
 
 
 def html_unescape(s: str) -> str:
@@ -203,12 +267,16 @@ for (const page of pages) {
 def test_in_chromium_no_image_is_broken_and_a_screenshot_is_saved(site, run):
     broken_page = run / "broken_probe.html"
     broken_page.write_text('<html><body><img src="no_such_figure.png"></body></html>')
-    result = _browser_check([site / "index.html", site / f"{EXECUTED}.html", broken_page], run)
+    opened = ["index.html", f"{EXECUTED}.html", "micro_models.html", "model_card_diffusion.html",
+              "api_freereg_lib_pose.html"]
+    result = _browser_check([site / name for name in opened] + [broken_page], run)
     assert result["broken_probe.html"] == {"images": 1, "broken": ["no_such_figure.png"]}, result  # the check sees
-    for name in ("index.html", f"{EXECUTED}.html"):
+    for name in opened:
         assert "error" not in result[name], result[name]
         assert not result[name]["broken"], f"{name}: broken images {result[name]['broken']}"
+        assert not _check_refs(site / name, site), _check_refs(site / name, site)
     assert result[f"{EXECUTED}.html"]["images"] >= 5, result  # notebook 00 draws its figures inline
+    assert result["model_card_diffusion.html"]["images"] >= 1, result  # the loss curves
     shot = run / "site_index.png"
     proc = subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
                            "--window-size=1280,1600", "--virtual-time-budget=20000", f"--screenshot={shot}",
@@ -225,6 +293,7 @@ def test_make_book_command_writes_the_site(tmp_path):
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert (tmp_path / "book" / "index.html").is_file() and (tmp_path / "book" / "05_your_data.html").is_file()
+    assert (tmp_path / "book" / "troubleshooting.html").is_file() and (tmp_path / "book" / "api.html").is_file()
     assert "Site:" in proc.stdout
     empty = tmp_path / "empty"
     empty.mkdir()
