@@ -73,6 +73,7 @@ from pathlib import Path
 
 from . import cluster
 from .batch_files import LOCK_FILE, RunFolderLocked, lock_run_folder, unique_key_loader  # noqa: F401
+from .batch_rows import _sha256, library_fingerprint, read_done, stale_reason, verify_unit  # noqa: F401
 from .batch_rows import (  # noqa: F401 - the rows and the results table, re-exported
     _MISSING,
     PAPER_DATASETS,
@@ -86,6 +87,7 @@ from .batch_rows import (  # noqa: F401 - the rows and the results table, re-exp
     write_table,
 )
 from .config import FreeRegConfig, config_for
+from .shards import parse_shard, shard_items  # noqa: F401 - the notebooks' contract, re-exported
 
 CONTRACT_PARAMS = ("out_dir", "shard")
 _GRID_KEYS = {"name", "notebook", "notebooks", "base", "sets", "grid", "executor"}
@@ -94,25 +96,7 @@ _GRID_KEYS = {"name", "notebook", "notebooks", "base", "sets", "grid", "executor
 # --------------------------------------------------------------------------------------
 # The notebook side of the contract: shards and per-pair rows.
 
-def parse_shard(shard: str) -> tuple[int, int]:
-    """``"i/n"`` -> ``(i, n)``; raises ``ValueError`` unless ``0 <= i < n``."""
-    m = re.fullmatch(r"\s*(\d+)\s*/\s*(\d+)\s*", str(shard))
-    if not m or not int(m[1]) < int(m[2]):
-        raise ValueError(
-            f"shard must be 'i/n' with 0 <= i < n (e.g. '0/1' for everything, '1/4' for the "
-            f"second of four); got {shard!r}"
-        )
-    return int(m[1]), int(m[2])
-
-
-def shard_items(items, shard: str) -> list:
-    """Shard ``i/n`` of ``items``: item ``k`` goes to shard ``k % n`` (deterministic, in order).
-
-    The ``n`` shards are disjoint and together hold every item. Cut a list to its first
-    ``n_pairs`` *before* sharding, so a sharded benchmark covers the same pairs.
-    """
-    i, n = parse_shard(shard)
-    return list(items)[i::n]
+# parse_shard and shard_items live in freereg_lib.shards (the loaders use them too); re-exported above.
 
 
 
@@ -371,36 +355,6 @@ def unit_dir(run_dir: Path, job: Job, shard: str) -> Path:
     return run_dir / job.id if n == 1 else run_dir / job.id / f"shard-{i}of{n}"
 
 
-def library_fingerprint() -> str:
-    """``<version>+<12 hex>``: the library's version and a hash of its sources (every
-    ``freereg_lib/**/*.py``), so a job run by another library is known as such."""
-    if not _FINGERPRINT:
-        from . import __version__
-
-        root = Path(__file__).resolve().parent
-        h = hashlib.sha256()
-        for f in sorted(root.rglob("*.py")):
-            h.update(f.relative_to(root).as_posix().encode() + b"\0" + f.read_bytes() + b"\0")
-        _FINGERPRINT.append(f"{__version__}+{h.hexdigest()[:12]}")
-    return _FINGERPRINT[0]
-
-
-_FINGERPRINT: list[str] = []
-
-
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
-def read_done(unit: Path) -> dict | None:
-    """The ``done.json`` of ``unit``, or None when it is missing or unreadable."""
-    try:
-        done = json.loads((unit / "done.json").read_text())
-    except (OSError, ValueError):
-        return None
-    return done if isinstance(done, dict) else None
-
-
 def write_done(unit: Path, job: Job, shard: str, **facts) -> dict:
     """Write ``unit/done.json`` (atomically, last): the job, its row count and the SHA-256 of
     ``out/pairs.csv``, the library fingerprint, the notebook's hash and the effective
@@ -415,39 +369,6 @@ def write_done(unit: Path, job: Job, shard: str, **facts) -> dict:
     tmp.write_text(json.dumps(done, indent=1))
     tmp.replace(unit / "done.json")  # atomic: a marker is never half written
     return done
-
-
-def verify_unit(unit: Path) -> str:
-    """Why the finished ``unit`` cannot be trusted (``""`` when it can): ``pairs.csv`` must
-    still have the row count and SHA-256 that ``done.json`` recorded."""
-    done = read_done(unit)
-    if done is None:
-        return f"{unit / 'done.json'} is missing or unreadable"
-    pairs = unit / "out" / "pairs.csv"
-    if "pairs_sha256" not in done or "rows" not in done:
-        return f"{unit / 'done.json'} records no row count and hash of pairs.csv (an older runner): re-run the job"
-    if not pairs.is_file():
-        return f"{pairs} is missing although the job finished: re-run the job (run ... --force)"
-    if _sha256(pairs) != done["pairs_sha256"]:
-        try:
-            now = f"{len(read_rows(unit / 'out'))} now"
-        except ValueError as exc:
-            now = str(exc)
-        return (f"{pairs} changed since the job finished ({done['rows']} rows recorded, {now}); it is "
-                "truncated, cut or edited: re-run the job (run ... --force) or restore the file")
-    return ""
-
-
-def stale_reason(unit: Path, job: Job) -> str:
-    """Why a finished ``unit`` is out of date (``""`` when it is not): another library or
-    notebook than the current ones made it."""
-    done = read_done(unit) or {}
-    why = []
-    if done.get("library") != library_fingerprint():
-        why.append(f"library {done.get('library')} (now {library_fingerprint()})")
-    if done.get("notebook_sha256") != _sha256(job.path):
-        why.append(f"another version of {job.notebook}")
-    return "finished with " + " and ".join(why) if why else ""
 
 
 def is_done(unit: Path, job: Job, shard: str) -> bool:

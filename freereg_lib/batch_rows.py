@@ -5,10 +5,13 @@ results table aggregated from them (moved here from ``batch.py``, which re-expor
   ``config.json``, written by a batch notebook, read back with their types;
 * :func:`write_table` and its parts: ``results.csv`` and ``results.md`` of a run folder, one
   row per job x (method, solver), the paper's Table 1 beside.
+* :func:`verify_unit` / :func:`stale_reason`: whether a finished unit's ``done.json`` still
+  matches its rows, and whether the current library and notebook made it (the table reads both).
 """
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
 import os
@@ -141,14 +144,78 @@ def _as_tuples(v):
 
 
 # --------------------------------------------------------------------------------------
+# A finished unit's marker, done.json (written by freereg_lib.batch.write_done): can it be trusted, is it current?
+
+def library_fingerprint() -> str:
+    """``<version>+<12 hex>``: the library's version and a hash of its sources (every
+    ``freereg_lib/**/*.py``), so a job run by another library is known as such."""
+    if not _FINGERPRINT:
+        from . import __version__
+
+        root = Path(__file__).resolve().parent
+        h = hashlib.sha256()
+        for f in sorted(root.rglob("*.py")):
+            h.update(f.relative_to(root).as_posix().encode() + b"\0" + f.read_bytes() + b"\0")
+        _FINGERPRINT.append(f"{__version__}+{h.hexdigest()[:12]}")
+    return _FINGERPRINT[0]
+
+
+_FINGERPRINT: list[str] = []
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def read_done(unit: Path) -> dict | None:
+    """The ``done.json`` of ``unit``, or None when it is missing or unreadable."""
+    try:
+        done = json.loads((unit / "done.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return done if isinstance(done, dict) else None
+
+
+def verify_unit(unit: Path) -> str:
+    """Why the finished ``unit`` cannot be trusted (``""`` when it can): ``pairs.csv`` must
+    still have the row count and SHA-256 that ``done.json`` recorded."""
+    done = read_done(unit)
+    if done is None:
+        return f"{unit / 'done.json'} is missing or unreadable"
+    pairs = unit / "out" / "pairs.csv"
+    if "pairs_sha256" not in done or "rows" not in done:
+        return f"{unit / 'done.json'} records no row count and hash of pairs.csv (an older runner): re-run the job"
+    if not pairs.is_file():
+        return f"{pairs} is missing although the job finished: re-run the job (run ... --force)"
+    if _sha256(pairs) != done["pairs_sha256"]:
+        try:
+            now = f"{len(read_rows(unit / 'out'))} now"
+        except ValueError as exc:
+            now = str(exc)
+        return (f"{pairs} changed since the job finished ({done['rows']} rows recorded, {now}); it is "
+                "truncated, cut or edited: re-run the job (run ... --force) or restore the file")
+    return ""
+
+
+def stale_reason(unit: Path, job: Job) -> str:
+    """Why a finished ``unit`` is out of date (``""`` when it is not): another library or
+    notebook than the current ones made it."""
+    done = read_done(unit) or {}
+    why = []
+    if done.get("library") != library_fingerprint():
+        why.append(f"library {done.get('library')} (now {library_fingerprint()})")
+    if done.get("notebook_sha256") != _sha256(job.path):
+        why.append(f"another version of {job.notebook}")
+    return "finished with " + " and ".join(why) if why else ""
+
+
+# --------------------------------------------------------------------------------------
 # The results table.
 
 def complete_units(job_dir: Path) -> tuple[list[Path] | None, str]:
     """The folders whose rows make up a job: the job folder when it finished unsharded,
     else a complete set of finished shards ``shard-0ofn .. shard-(n-1)ofn`` (smallest n
     first). Returns ``(None, reason)`` when there is neither."""
-    from .batch import verify_unit
-
     broken = []
     if (job_dir / "done.json").is_file():
         why = verify_unit(job_dir)
@@ -216,8 +283,6 @@ def results_table(run_dir: Path, jobs: list[Job], flagged: dict | None = None):
     where the job's ``dataset`` / method / solver is there (NaN elsewhere).
     """
     import pandas as pd
-
-    from .batch import stale_reason
 
     parts, left_out = [], {}
     param_cols = list(dict.fromkeys(k for j in jobs for k in j.params))

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from freereg_lib import cameras, config_for, projection, sources, synthetic
-from freereg_lib.datasets import common, pairlists
+from freereg_lib.datasets import common, pairlists, registry
 from freereg_lib.datasets.demo import load_demo_pair
 from freereg_lib.datasets.scannet import ScanNet
 from freereg_lib.datasets.threedmatch import FreeRegScenes, ThreeDMatch
@@ -108,7 +108,7 @@ def test_scannet_and_kitti_fill_sensor_depth(tmp_path):
     assert np.array_equal(pair.points, cameras.backproject(pair.sensor_depth, K_dep)[0])
     pair.validate()
     # The official ScanNet layout (FreeRegScenes with ScanNet's cameras) likewise.
-    off = pairlists.open_dataset("scannet", make_3dmatch(tmp_path / "sn"))
+    off = registry.open_dataset("scannet", make_3dmatch(tmp_path / "sn"))
     assert off.voxel is None
 
 

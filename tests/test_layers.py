@@ -11,6 +11,8 @@ Rules checked here, for the packages issue 42 restructured:
   pipeline or commands layers;
 * ``synthetic`` (core) imports only core modules;
 * no import circle runs through ``training``, ``micro``, ``backends`` or ``synthetic``;
+* ``datasets/``: the loaders never import the registry that lists them (``datasets.registry``, and
+  the package's ``__init__`` that re-exports it), and no import circle runs inside the package;
 * no file under ``freereg_lib/`` or ``benchmarks/`` has more than 800 lines.
 """
 from __future__ import annotations
@@ -162,3 +164,24 @@ def test_no_file_over_800_lines():
             if n > MAX_LINES and rel not in KNOWN_OVER:
                 over[rel] = n
     assert over == {}, f"split by responsibility, not by size: {over}"
+
+
+DATASET_LOADERS = ("common", "pairlists", "demo", "icl", "kitti", "scannet", "threedmatch")
+
+
+def test_the_dataset_loaders_never_import_the_registry():
+    graph = import_graph()
+    loaders = [m for m in graph if m.startswith("freereg_lib.datasets.")
+               and m.rpartition(".")[2] not in ("registry",)]
+    assert {f"freereg_lib.datasets.{n}" for n in DATASET_LOADERS} <= set(loaders), loaders
+    bad = sorted(f"{m} imports {i}" for m in loaders for i in graph[m]
+                 if i in ("freereg_lib.datasets.registry", "freereg_lib.datasets"))
+    assert bad == [], "the registry sits above the loaders it lists:\n" + "\n".join(bad)
+    assert graph["freereg_lib.datasets.registry"] >= {f"freereg_lib.datasets.{n}" for n in
+                                                      ("demo", "kitti", "scannet", "threedmatch")}
+
+
+def test_no_import_circle_in_datasets():
+    circles = [c for c in _cycles(import_graph()) if any(m.startswith("freereg_lib.datasets") for m in c)]
+    assert circles == [], circles
+

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from freereg_lib import cameras, projection
-from freereg_lib.datasets import pairlists
+from freereg_lib.datasets import pairlists, registry
 from freereg_lib.datasets.demo import load_demo_pair
 from freereg_lib.datasets.kitti import KittiDC
 from freereg_lib.datasets.scannet import ScanNet, frame_overlap
@@ -287,7 +287,7 @@ def test_demo_pair_inverts_the_rgb_to_cloud_pose(tmp_path):
     root, K_rgb, K_dpt, points = make_demo(tmp_path / "demo")
     T_world_cam, T_world_sensor = POSES[0], POSES[1]
     pair = load_demo_pair(root)
-    assert [p.name for p in pairlists.open_dataset("demo", root).pairs()] == [pair.name]
+    assert [p.name for p in registry.open_dataset("demo", root).pairs()] == [pair.name]
     np.testing.assert_allclose(pair.points, points, atol=1e-12)
     np.testing.assert_allclose(pair.T_cam_pc, cameras.invert(T_world_cam) @ T_world_sensor, atol=1e-9)
     assert pair.depth_size == (36, 48) and pair.depth_gt.shape == (72, 96)
@@ -298,14 +298,14 @@ def test_demo_pair_inverts_the_rgb_to_cloud_pose(tmp_path):
 
 
 def test_open_dataset_by_name(tmp_path):
-    assert isinstance(pairlists.open_dataset("3DMatch", make_3dmatch(tmp_path / "3dm")), ThreeDMatch)
-    official = pairlists.open_dataset("scannet", tmp_path / "3dm")  # <scene>/query/: the official data
+    assert isinstance(registry.open_dataset("3DMatch", make_3dmatch(tmp_path / "3dm")), ThreeDMatch)
+    official = registry.open_dataset("scannet", tmp_path / "3dm")  # <scene>/query/: the official data
     # The official code's depth-side cloud is the back-projection of the depth map: no 3 cm voxel grid.
     assert isinstance(official, FreeRegScenes) and official.dataset == "scannet" and official.voxel is None
     root, _, _ = make_scannet(tmp_path / "export")
-    assert isinstance(pairlists.open_dataset("scannet", root, frame_step=1), ScanNet)
+    assert isinstance(registry.open_dataset("scannet", root, frame_step=1), ScanNet)
     with pytest.raises(ValueError, match="unknown dataset 'nyu'"):
-        pairlists.open_dataset("nyu", tmp_path)
+        registry.open_dataset("nyu", tmp_path)
 
 
 def test_ply_reader_handles_binary_extra_properties_and_refuses_garbage(tmp_path):

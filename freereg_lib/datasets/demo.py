@@ -34,6 +34,7 @@ import numpy as np
 from .. import cameras
 from ..pair import Pair
 from .common import INDOOR_DEPTH_RANGE, INDOOR_MAX_TRANSLATION, INVALID_DEPTH, read_depth, read_pose_txt, read_rgb
+from .common import read_ply_points as read_ply_vertices
 from .pairlists import PairEntry, PairSource, require
 
 LAYOUT = __doc__.split("::\n\n", 1)[1].split("\n\n", 1)[0]
@@ -47,66 +48,10 @@ DEMO_CAMERAS = {
 }
 
 
-_PLY_TYPES = {"char": "i1", "uchar": "u1", "short": "i2", "ushort": "u2", "int": "i4", "uint": "u4",
-              "float": "f4", "double": "f8", "int8": "i1", "uint8": "u1", "int16": "i2", "uint16": "u2",
-              "int32": "i4", "uint32": "u4", "float32": "f4", "float64": "f8"}
-
-
 def read_ply_points(path: str | Path) -> np.ndarray:
-    """The ``x y z`` of the vertices of a ``.ply`` file (ASCII or binary), ``(N, 3) float64``.
-
-    Read here rather than with Open3D, whose reader returns uninitialised memory instead of
-    an error when a file is malformed. The vertex element must come first (as every point
-    cloud writer puts it); anything unreadable raises ``ValueError`` naming the file.
-    """
-    path = require(path, "point cloud", LAYOUT)
-    data = path.read_bytes()
-    end = data.find(b"end_header")
-    if not data.startswith(b"ply") or end < 0:
-        raise ValueError(f"{path} is not a PLY file (no 'ply' ... 'end_header' header)")
-    header = data[:end].decode("ascii", "replace").splitlines()
-    body = data[data.index(b"\n", end) + 1:]
-    fmt = next((ln.split()[1] for ln in header if ln.startswith("format ")), "")
-    elements = [ln.split() for ln in header if ln.startswith(("element ", "property "))]
-    if not elements or elements[0][:2] != ["element", "vertex"]:
-        raise ValueError(f"{path}: the first element must be 'vertex'")
-    count, props = int(elements[0][2]), []
-    for words in elements[1:]:
-        if words[0] == "element":
-            break
-        if words[1] == "list" or words[1] not in _PLY_TYPES:
-            raise ValueError(f"{path}: unsupported vertex property {' '.join(words)!r}")
-        props.append((words[2], _PLY_TYPES[words[1]]))
-    if not {"x", "y", "z"} <= {n for n, _ in props}:
-        raise ValueError(f"{path}: vertices have no x, y, z properties")
-    if count == 0:
-        raise ValueError(f"{path} holds no vertex (an empty point cloud)")
-    only_vertices = sum(words[0] == "element" for words in elements) == 1
-    try:
-        if fmt == "ascii":
-            lines = [ln for ln in body.decode("ascii").splitlines() if ln.strip()]
-            if only_vertices and len(lines) > count:
-                raise ValueError(f"the header declares {count} vertices but the body holds {len(lines)} lines of "
-                                 "them (a header count left smaller than its body would read part of the cloud)")
-            table = np.loadtxt(lines[:count], ndmin=2)
-            cols = [n for n, _ in props]
-            xyz = table[:, [cols.index("x"), cols.index("y"), cols.index("z")]]
-        elif fmt in ("binary_little_endian", "binary_big_endian"):
-            order = "<" if fmt == "binary_little_endian" else ">"
-            dtype = np.dtype([(n, order + t) for n, t in props])
-            if only_vertices and len(body) >= (count + 1) * dtype.itemsize:
-                raise ValueError(f"the header declares {count} vertices but the body holds "
-                                 f"{len(body) // dtype.itemsize} ({len(body)} bytes of {dtype.itemsize}; a header count "
-                                 "left smaller than its body would read part of the cloud)")
-            rec = np.frombuffer(body, dtype=dtype, count=count)
-            xyz = np.stack([rec["x"], rec["y"], rec["z"]], axis=1)
-        else:
-            raise ValueError(f"unknown format {fmt!r}")
-    except ValueError as exc:
-        raise ValueError(f"cannot read the vertices of {path}: {exc}") from None
-    if len(xyz) != count or len(xyz) == 0:
-        raise ValueError(f"{path}: expected {count} vertices, read {len(xyz)}")
-    return np.asarray(xyz, dtype=np.float64)
+    """The ``x y z`` of the vertices of a ``.ply`` file, ``(N, 3) float64``
+    (:func:`freereg_lib.datasets.common.read_ply_points`); a missing file names the demo's layout."""
+    return read_ply_vertices(require(path, "point cloud", LAYOUT))
 
 
 def read_cameras(path: str | Path) -> dict:

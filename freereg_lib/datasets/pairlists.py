@@ -13,7 +13,8 @@ back on every later run, so the pairs are the same on every machine and can be c
 
 ``score`` is the quantity the rule tested (an overlap fraction, or a distance in metres).
 A pair is the RGB image of ``image_frame`` against the point cloud of ``cloud_frame``.
-Every loader is a :class:`PairSource`; :func:`open_dataset` builds one by name.
+Every loader is a :class:`PairSource`; the registry :func:`freereg_lib.datasets.registry.open_dataset`,
+which sits above the loaders, builds one by name (the loaders never import it).
 """
 from __future__ import annotations
 
@@ -128,37 +129,13 @@ class PairSource:
         :class:`~freereg_lib.pair.UnreadablePair` holding the error, so a benchmark records
         it and goes on (:meth:`pair` raises it directly).
         """
-        from ..batch import shard_items
         from ..pair import load_or_record
+        from ..shards import shard_items
 
         entries = self.pair_list()[: n if n is not None else None]
         for entry in shard_items(entries, shard):
             name = entry.key if entry.key.startswith(f"{self.dataset}/") else f"{self.dataset}/{entry.key}"
             yield load_or_record(name, self.pair, entry)
-
-
-def open_dataset(name: str, root: str | Path, **kw) -> PairSource:
-    """The loader of dataset ``name`` reading ``root``; ``kw`` go to its constructor
-    (e.g. ``pair_list=``).
-
-    ``3dmatch``: :class:`~.threedmatch.ThreeDMatch`; ``kitti``: :class:`~.kitti.KittiDC`;
-    ``scannet``: the official FreeReg data (:func:`~.scannet.scannet_official`) when
-    ``root`` holds ``<scene>/query/`` folders, else ScanNet's own export
-    (:class:`~.scannet.ScanNet`); ``demo``: :class:`~.demo.FreeRegDemo` (one pair).
-    """
-    from .demo import FreeRegDemo
-    from .kitti import KittiDC
-    from .scannet import ScanNet, scannet_official
-    from .threedmatch import ThreeDMatch
-
-    key = name.lower().replace("-", "_")
-    if key == "scannet":
-        official = any(p.is_dir() for p in Path(root).glob("*/query"))
-        return (scannet_official if official else ScanNet)(root, **kw)
-    loaders = {"3dmatch": ThreeDMatch, "kitti": KittiDC, "kitti_dc": KittiDC, "demo": FreeRegDemo}
-    if key not in loaders:
-        raise ValueError(f"unknown dataset {name!r}; loaders exist for {sorted([*loaders, 'scannet'])}")
-    return loaders[key](root, **kw)
 
 
 # --------------------------------------------------------------------------------------
