@@ -82,13 +82,15 @@ def _plain(v):
     return v
 
 
-def load_rows(rows_path: Path) -> list[dict]:
-    """The per-pair records of the longest complete prefix ``k = 0 .. n-1`` (one record per pair)."""
+def load_rows(rows_paths) -> list[dict]:
+    """The per-pair records (of one or more row files, e.g. one per shard) of the longest complete
+    prefix ``k = 0 .. n-1``, one record per pair."""
     recs = {}
-    for line in Path(rows_path).read_text().splitlines():
-        if line.strip():
-            r = json.loads(line)
-            recs.setdefault(r["k"], r)
+    for path in [rows_paths] if isinstance(rows_paths, (str, Path)) else rows_paths:
+        for line in Path(path).read_text().splitlines():
+            if line.strip():
+                r = json.loads(line)
+                recs.setdefault(r["k"], r)
     n = 0
     while n in recs:
         n += 1
@@ -162,18 +164,18 @@ def main(argv=None) -> int:
     p.add_argument("--pairs", type=int, default=None, help="default: the split's size")
     p.add_argument("--shard", default="0/1", help="i/n: this process runs pairs k with k %% n == i")
     p.add_argument("--weights", default=None, help="micro weights folder (default: the committed ones)")
-    p.add_argument("--rows", required=True, help="per-pair rows (JSON lines), appended to")
+    p.add_argument("--rows", nargs="+", required=True,
+                   help="per-pair rows (JSON lines): appended to (the first), or summarized (all)")
     p.add_argument("--summarize", action="store_true", help="summarize --rows into --out instead of running")
     p.add_argument("--out", default=None)
     p.add_argument("--run-command", action="append", default=[],
                    help="(with --summarize) a command line that produced the rows, recorded in the JSON")
     args = p.parse_args(argv)
     split = SPLITS[args.split]
-    rows = Path(args.rows)
     if not args.summarize:
-        run(args.split, args.pairs or split.n_pairs, rows, args.shard, args.weights)
+        run(args.split, args.pairs or split.n_pairs, Path(args.rows[0]), args.shard, args.weights)
         return 0
-    res = summarize(load_rows(rows), args.split)
+    res = summarize(load_rows(args.rows), args.split)
     res["commands"] = args.run_command + ["python -m freereg_lib.training.evaluate_split " + " ".join(
         sys.argv[1:] if argv is None else argv)]
     res["git_head"] = _git_head()
