@@ -29,10 +29,10 @@ def position_matches(feats, image_size: tuple[int, int], depth_size: tuple[int, 
     """Mutual nearest neighbours in pixel position between the image keypoints
     (``feats.uv_image``) and the depth keypoints that have a depth (``feats.uv_depth``), the
     image's pixels mapped onto the depth view (``(u + 0.5) * W_d / W - 0.5``, the same for
-    ``v``). Returns :class:`~freereg_lib.pipeline.Matches`."""
+    ``v``). Returns :class:`~freereg_lib.matching.Matches`."""
     from scipy.spatial import cKDTree
 
-    from .pipeline import Matches
+    from .matching import Matches
 
     uv_i = np.asarray(feats.uv_image, dtype=np.float64)
     uv_d = np.asarray(feats.uv_depth, dtype=np.float64)

@@ -1,7 +1,7 @@
 """Geometry checks where one's own data enters (``freereg register``, :mod:`freereg_lib.register`).
 
-Each check raises :class:`~freereg_lib.register.InputError` (a ``ValueError``) with one line
-naming the input and what was expected (README, "When something goes wrong"):
+Each check raises :class:`InputError` (a ``ValueError``) with one line
+naming the input and what was expected (docs/troubleshooting.md, "When something goes wrong"):
 
 * :func:`positive`: ``--depth-scale``, ``--cloud-scale`` (0, negative, NaN or inf refused);
 * :func:`depth_size_fits`: ``--depth-size W H`` against the depth camera's principal point
@@ -32,9 +32,11 @@ import numpy as np
 from . import cameras
 
 
-def _error(msg: str) -> Exception:
-    from .register import InputError
+class InputError(ValueError):
+    """A user input that cannot be registered; its message is one line naming the input."""
 
+
+def _error(msg: str) -> Exception:
     return InputError(msg)
 
 

@@ -9,8 +9,22 @@ element-wise kernels stall on a busy 2-core machine.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import torch
+
+
+@dataclass
+class Matches:
+    """Mutual nearest neighbours: rows ``idx_image`` of the image side, ``idx_depth`` of the depth side."""
+
+    idx_image: np.ndarray
+    idx_depth: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.idx_image)
+
 
 # Below this many columns a chunk's column argmin is one np.argmin(axis=0); above it a
 # running minimum over the chunk's rows is faster (NumPy's axis-0 argmin is a strided

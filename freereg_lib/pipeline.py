@@ -17,6 +17,7 @@ import numpy as np
 
 from . import baseline, cameras, densify, keypoints, matching, metrics, pose, projection
 from .config import FreeRegConfig
+from .matching import Matches  # noqa: F401 - the matches type lives with the matching; pipeline.Matches kept
 from .pair import Pair
 
 # Method name -> fusion weight w of the diffusion part (None: the config's fusion_w; NaN: no
@@ -293,17 +294,6 @@ def _batched(compute, idx: list[int], wanted: bool) -> dict:
         return dict(zip(idx, compute()))
     except Exception:
         return {}
-
-
-@dataclass
-class Matches:
-    """Mutual nearest neighbours: rows ``idx_image`` of the image side, ``idx_depth`` of the depth side."""
-
-    idx_image: np.ndarray
-    idx_depth: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.idx_image)
 
 
 def descriptors(feats: PairFeatures, w: float) -> tuple[np.ndarray, np.ndarray]:

@@ -59,8 +59,7 @@ MAX_EXTENT_M = {False: 200.0, True: 20_000.0}  # indoor, outdoor
 VIRTUAL_MAX_WIDTH = 640  # virtual depth cameras render at most this wide (the image's intrinsics, scaled)
 
 
-class InputError(ValueError):
-    """A user input that cannot be registered; its message is one line naming the input."""
+from .inputs_check import InputError  # noqa: E402,F401 - defined with the checks that raise it
 
 
 @dataclass

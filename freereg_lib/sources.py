@@ -89,7 +89,7 @@ def iter_pairs(
     ``shard="i/n"`` keeps the k-th selected pair when ``k % n == i``, so n shards together
     cover exactly the pairs of one unsharded run.
     """
-    from .batch import parse_shard, shard_items
+    from .shards import parse_shard, shard_items
 
     index, count = parse_shard(shard)
     name = dataset.lower().replace("-", "_")
