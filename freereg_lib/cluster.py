@@ -10,7 +10,7 @@ the progress bar and the dashboard link. :mod:`freereg_lib.batch` decides what a
 records what comes back; this module imports nothing from it, so there is no import cycle.
 
 dask and distributed are imported only when the engine starts: the local executor, the
-default, needs neither. Why Dask and not Ray: README, "Several GPUs or machines".
+default, needs neither. Why Dask and not Ray: docs/real_data.md, "Several GPUs or machines".
 
 Two kinds of failure, told apart on purpose:
 

@@ -55,7 +55,8 @@ class FreeRegConfig:
     pca_dim: int = ranged(128, "[1, inf)")
     pca_device: str | None = None  # None: float64 NumPy on the host; "cuda": float32 on the GPU
     seed: int = ranged(0, "[0, inf)")
-    # Model weights and precision of the tiny / real backends (README "Weights", "Faster runs").
+    # Model weights and precision of the tiny / real backends (docs/real_data.md, "Weights";
+    # docs/performance.md, "Faster runs").
     sd_unet_variant: str = "non_ema"  # the official (non-EMA) SD v1.5 UNet; "ema": diffusers' default files
     controlnet: str = "lllyasviel/control_v11f1p_sd15_depth"  # Table 1; or a single-file checkpoint (FreeReg-Ft)
     dtype: str = "float32"  # the official precision; "float16" / "bfloat16": faster on CUDA, other features

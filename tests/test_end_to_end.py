@@ -7,7 +7,7 @@ from freereg_lib.backends import get_backend
 
 def test_stub_fused_kabsch_registers_most_synthetic_indoor_pairs():
     # The correspondence-scored Kabsch-RANSAC: the official Open3D scoring costs ~70 s a pair
-    # here and is fooled by shrinking similarities (README, "Where this companion departs").
+    # here and is fooled by shrinking similarities (docs/fidelity.md, "Where this companion departs").
     # A wiring check, so 10k iterations instead of the paper's 50k keep it short.
     cfg = config_for("synthetic_indoor", ransac_iters=10_000)
     backend = get_backend("stub", cfg)

@@ -2,8 +2,8 @@
 
 FreeReg-G (FPFH) with the default ICL config, the paper's 50k-iteration solvers, 8 pairs
 spread over the sample's pair list; the image side's depth is the true sensor depth or the
-stub's monocular depth. The floors were taken from the corrected chain (README, "Real
-frames"): 8 / 8 registered with the true depth by both solvers and by Kabsch with the stub's
+stub's monocular depth. The floors were taken from the corrected chain (docs/real_frames.md):
+8 / 8 registered with the true depth by both solvers and by Kabsch with the stub's
 depth, 7 / 8 by PnP with it. Before the correction (ICL densified with ``fill_in_fast``,
 Kabsch scored by a current Open3D or by the matches) PnP registered 4 / 8 with the true depth.
 """

@@ -8,7 +8,7 @@ every weight folder it will need exists, so a missing one fails at once with
 
 Device: ``device=None`` picks CUDA when available, else the CPU. Precision: float32 on every
 device, as the official code runs; ``cfg.dtype = "float16"`` or ``"bfloat16"`` is a speed-up
-on CUDA that changes the features (README, "Faster runs"); the ``dtype=`` argument of the
+on CUDA that changes the features (docs/performance.md, "Faster runs"); the ``dtype=`` argument of the
 backends, when given, wins over ``cfg.dtype``. ZoeDepth always runs in float32. Asking for CUDA
 without CUDA raises a ``RuntimeError``.
 """

@@ -194,7 +194,7 @@ def require_sd_unet_variant(sd_path: str | os.PathLike, variant: str) -> Path:
         "On a machine with internet, run:",
         f'    huggingface-cli download {SD15_ID} "unet/config.json" "{files[0]}"'
         + ("" if "snapshots" in Path(sd_path).parts else f" --local-dir {sd_path}"),
-        "(or re-run the README's download command, which fetches them).",
+        "(or re-run the download command of docs/real_data.md, which fetches them).",
     ]
     if variant == "non_ema":
         lines.append("To use the EMA weights instead (not the official setting; features differ), set "
