@@ -328,6 +328,18 @@ def test_every_figure_the_readme_shows_is_in_the_repository_and_small():
         assert f"figures/gallery/{name}.png" in local, f"the README does not show the gallery's {name}"
 
 
+def test_the_readme_is_a_front_door_whose_links_lead_somewhere():
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert len(text.splitlines()) <= 300, "the README is a front door (issue 42): move reference material to docs/"
+    links = re.findall(r"\]\(([^)\s]+)\)", text)
+    local = [unquote(urlparse(l).path) for l in links if not urlparse(l).scheme and urlparse(l).path]
+    assert any(l.startswith("docs/") for l in local), local
+    missing = [l for l in local if not (ROOT / l).exists()]
+    assert not missing, f"README links to {missing}, which do not exist"
+    for md in (ROOT / "docs").glob("*.md"):
+        assert f"docs/{md.name}" in text, f"the README does not link docs/{md.name}"
+
+
 def test_compact_png_fits_the_limits(tmp_path):
     from PIL import Image
     import numpy as np
