@@ -207,7 +207,7 @@ def write_card(folder: Path, ev: dict) -> None:
          "resumable), then `python -m freereg_lib.training.evaluate_depth`. The first 500 rooms are the same "
          "in both view sets."),
         "",
-        f"## Held-out quality ({ev['pairs']} pairs `make_pairs({ev['pairs']}, 'indoor', seed={ev['seed']})`, "
+        f"## {'Development set' if ev['seed'] == 2026 else 'Held-out quality'} ({ev['pairs']} pairs `make_pairs({ev['pairs']}, 'indoor', seed={ev['seed']})`, "
         "480 x 640, full estimator path with flip averaging)",
         "",
         "| depth | MAE (m) [bootstrap 95 % over images] | median(pred/true) [p10, p90] | MAE after per-image scale (m) | edges / elsewhere (m) | by true depth (m) |",
