@@ -50,10 +50,24 @@ from . import cameras, metrics, pipeline
 from .config import FreeRegConfig, config_for
 from .pair import Pair
 
-# Thresholds of the plausibility verdict (no ground truth); see the module docstring.
-MIN_INLIERS = 25
-MIN_INLIER_RATIO = 0.2
-MAX_SCALE = 1.5
+# Thresholds of the plausibility verdict (no ground truth; the module docstring), per solver,
+# measured on real frames (python -m freereg_lib.verdict_measure; docs/your_data.md): no pose
+# within (5 deg, 0.1 m) of the truth may be called FAILED. PnP-RANSAC's inliers (10 px) are
+# fewer than Kabsch's (0.2 m): right PnP poses came with 12 inliers (7 %), Kabsch's with 24.
+MIN_INLIERS = {"kabsch": 22, "pnp": 12}
+MIN_INLIER_RATIO = {"kabsch": 0.15, "pnp": 0.07}
+MAX_SCALE = 1.3  # Kabsch's similarity: wrong poses on real frames came with scales 1.33 and 0.73
+
+
+def verdict_thresholds(solver: str, min_inliers=None, min_ratio=None, max_scale=None) -> tuple[int, float, float]:
+    """``(min_inliers, min_inlier_ratio, max_scale)`` of the verdict for ``solver``: the values
+    given, else the module's, which are per solver (PnP's inliers are within 10 px, Kabsch's
+    within 0.2 m: their counts differ)."""
+    return (MIN_INLIERS[solver] if min_inliers is None else int(min_inliers),
+            MIN_INLIER_RATIO[solver] if min_ratio is None else float(min_ratio),
+            MAX_SCALE if max_scale is None else float(max_scale))
+
+
 # Largest plausible extent (bounding-box diagonal, m) of a cloud: beyond, it looks like millimetres.
 MAX_EXTENT_M = {False: 200.0, True: 20_000.0}  # indoor, outdoor
 VIRTUAL_MAX_WIDTH = 640  # virtual depth cameras render at most this wide (the image's intrinsics, scaled)
@@ -442,9 +456,9 @@ def register(
     rough_T_pc_cam: np.ndarray | None = None,
     up: str | None = None,
     n_yaw: int = 8,
-    min_inliers: int = MIN_INLIERS,
-    min_inlier_ratio: float = MIN_INLIER_RATIO,
-    max_scale: float = MAX_SCALE,
+    min_inliers: int | None = None,
+    min_inlier_ratio: float | None = None,
+    max_scale: float | None = None,
     log: Callable[[str], None] | None = print,
 ) -> Registration:
     """Register ``pair.image`` to ``pair.points``; returns a :class:`Registration`.
@@ -489,6 +503,7 @@ def register(
     method, why_method = choose_method(backend, pair, method)
     if solver not in ("kabsch", "pnp"):
         raise InputError(f"unknown solver {solver!r}; expected kabsch or pnp")
+    min_inliers, min_inlier_ratio, max_scale = verdict_thresholds(solver, min_inliers, min_inlier_ratio, max_scale)
     w = pipeline._weight(method, cfg)
     diffusion, geometric = w > 0, w < 1
     if getattr(backend, "name", "") == "stub" and pair.depth_gt is None:
