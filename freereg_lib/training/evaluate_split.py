@@ -44,10 +44,28 @@ def _done(rows_path: Path) -> set[int]:
     return {json.loads(line)["k"] for line in rows_path.read_text().splitlines() if line.strip()}
 
 
+FEATURE_FIELDS = ("uv_image", "pts_image", "uv_depth", "pts_depth", "diff_image", "diff_depth", "geo_image", "geo_depth")
+
+
+def save_features(feats, path: Path) -> None:
+    """The arrays of a pair's :class:`~freereg_lib.pipeline.PairFeatures` that matching, both solvers and
+    the scoring of a synthetic pair need (not the depth view: a synthetic pair's truth is its frame)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, **{f: getattr(feats, f) for f in FEATURE_FIELDS})
+
+
+def load_features(path: Path):
+    from ..pipeline import PairFeatures
+
+    with np.load(path) as z:
+        return PairFeatures(**{f: z[f] for f in FEATURE_FIELDS}, mono_depth=None, view=None)
+
+
 def run(split_name: str, n_pairs: int, rows_path: Path, shard: str = "0/1", weights_dir=None,
-        progress: bool = True) -> None:
+        progress: bool = True, cache: Path | None = None) -> None:
     """Append the rows of the split's pairs ``k < n_pairs`` with ``k % n == i`` (``shard = "i/n"``)
-    not yet in ``rows_path``."""
+    not yet in ``rows_path``; with ``cache``, each pair's features are also saved there
+    (``<k>.npz``, for choices made on the development set without recomputing them)."""
     from tqdm import tqdm
 
     from .. import pipeline, synthetic
@@ -66,7 +84,13 @@ def run(split_name: str, n_pairs: int, rows_path: Path, shard: str = "0/1", weig
         synthetic.check_eval_seed(seed)
         t0 = time.time()
         pair = synthetic.make_pair("indoor", seed=seed)
-        rows = pipeline.run_pair(pair, backend, cfg, VARIANTS)
+        try:
+            feats = pipeline.compute_features(pair, backend, cfg, True, True)
+            if cache is not None:
+                save_features(feats, Path(cache) / f"{k}.npz")
+        except Exception as exc:  # a failed pair scores as run_pair scores it
+            feats = exc
+        rows = pipeline.variant_rows(pair, feats, cfg, VARIANTS)
         rec = {"k": k, "pair_seed": seed, "pair": pair.name, "seconds": round(time.time() - t0, 1),
                "label": backend.label,
                "rows": [{key: _plain(r.get(key)) for key in ROW_KEYS} for r in rows]}
@@ -172,13 +196,15 @@ def main(argv=None) -> int:
     p.add_argument("--rows", nargs="+", required=True,
                    help="per-pair rows (JSON lines): appended to (the first), or summarized (all)")
     p.add_argument("--summarize", action="store_true", help="summarize --rows into --out instead of running")
+    p.add_argument("--cache", default=None, help="also save each pair's features here (<k>.npz)")
     p.add_argument("--out", default=None)
     p.add_argument("--run-command", action="append", default=[],
                    help="(with --summarize) a command line that produced the rows, recorded in the JSON")
     args = p.parse_args(argv)
     split = SPLITS[args.split]
     if not args.summarize:
-        run(args.split, args.pairs or split.n_pairs, Path(args.rows[0]), args.shard, args.weights)
+        run(args.split, args.pairs or split.n_pairs, Path(args.rows[0]), args.shard, args.weights,
+            cache=Path(args.cache) if args.cache else None)
         return 0
     res = summarize(load_rows(args.rows), args.split)
     res["commands"] = args.run_command + ["python -m freereg_lib.training.evaluate_split " + " ".join(

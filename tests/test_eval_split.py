@@ -1,0 +1,40 @@
+"""The test split's evaluation (freereg_lib.training.evaluate_split): summaries of per-pair rows."""
+import json
+
+import numpy as np
+
+from freereg_lib.training import evaluate_split as ES
+from freereg_lib.training import splits
+
+
+def _rec(k, rng):
+    rows = []
+    for m in ES.METHODS:
+        ir = float(rng.random() * 0.3)
+        for s in ES.SOLVERS:
+            reg = bool(rng.random() < 0.3)
+            rows.append({"method": m, "solver": s, "w": 0.5, "n_matches": 40, "IR": ir, "IN": 5,
+                         "RE": 5.0 if reg else None, "TE": 0.1 if reg else None, "registered": reg,
+                         "n_evaluable": 40, "error": ""})
+    return {"k": k, "pair_seed": splits.TEST.pair_seeds(k + 1)[k], "pair": f"p{k}", "seconds": 1.0,
+            "label": "micro", "rows": rows}
+
+
+def test_summary_uses_the_longest_complete_prefix_and_one_noise_seed(tmp_path):
+    rng = np.random.default_rng(0)
+    a, b = tmp_path / "a.jsonl", tmp_path / "b.jsonl"
+    a.write_text("".join(json.dumps(_rec(k, rng)) + "\n" for k in (0, 2, 4, 6)))
+    b.write_text("".join(json.dumps(_rec(k, rng)) + "\n" for k in (1, 3, 7)))  # 5 missing
+    recs = ES.load_rows([a, b])
+    assert [r["k"] for r in recs] == [0, 1, 2, 3, 4]
+    res = ES.summarize(recs, "test")
+    assert res["n_pairs"] == 5 and res["noise_seed"] == splits.TEST.noise_seed == splits.DEV.noise_seed
+    fused = res["results"]["FreeReg kabsch"]
+    assert np.isclose(fused["IR"]["mean"], 100 * np.mean(fused["IR_per_pair"]))
+    assert fused["ladder"]["RR@20deg/0.5m"] == fused["RR"]["mean"]  # the ladder's RR rung is RR
+    assert set(res["tests"]) >= {"IR: FreeReg - FreeReg-D", "IR: FreeReg - FreeReg-G"}
+
+
+def test_the_splits_are_the_documented_ones():
+    assert (splits.DEV.seed, splits.DEV.n_pairs, splits.DEV.noise_seed) == (2026, 30, 0)
+    assert splits.TEST.seed == 4049 and splits.TEST.pair_seeds(2) == [4049 * 1_000_003, 4049 * 1_000_003 + 1]
