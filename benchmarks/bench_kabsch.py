@@ -24,7 +24,7 @@ import numpy as np
 from freereg_lib import cameras, config_for, metrics, pipeline, pose
 from freereg_lib.backends import get_backend
 from freereg_lib.datasets.icl import ICLSample
-from freereg_lib.real_frames import spread
+from freereg_lib.sources import spread
 
 SCORINGS = ("official", "open3d")
 

@@ -21,19 +21,10 @@ import numpy as np
 from . import metrics, pipeline
 from .config import FreeRegConfig, config_for
 from .datasets.icl import ICLSample
+from .sources import spread
 
 DEPTHS = ("true", "stub")
 SOLVERS = ("kabsch", "pnp")
-
-
-def spread(n_items: int, n: int | None) -> list[int]:
-    """``n`` indices spread evenly over ``range(n_items)``, first and last included (all when
-    ``n`` is None or not smaller)."""
-    if n is None or n >= n_items:
-        return list(range(n_items))
-    if n <= 0:
-        return []
-    return sorted({int(round(k)) for k in np.linspace(0, n_items - 1, n)})
 
 
 def run(n_pairs: int | None = 12, depths=DEPTHS, solvers=SOLVERS, cfg: FreeRegConfig | None = None,

@@ -545,7 +545,7 @@ def register(
                 h_img, h_dep = pipeline.scene_hints(q, view) if use_hints else ({}, {})
                 if maps_img is None:
                     maps_img = backend.diffusion_rgb_batch([q.image], [h_img], cfg.layers)[0]
-                maps = (maps_img, backend.diffusion_depth_batch([view.dense], [h_dep], cfg.layers)[0])
+                maps = (maps_img, backend.diffusion_depth_batch([view.hint_depth], [h_dep], cfg.layers)[0])
             feats = pipeline.compute_features(q, backend, cfg, diffusion, geometric, view=view, maps=maps, mono=mono)
             m = pipeline.match(feats, w, cfg.match_device)
             res = pipeline.solve(q, feats, m, cfg, solver)

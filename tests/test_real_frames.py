@@ -37,12 +37,6 @@ def test_pairs_are_spread_over_the_list(rows):
     assert len(names) == 8 and listed[0] in names and listed[-1] in names
 
 
-def test_spread_indices():
-    assert real_frames.spread(10, 4) == [0, 3, 6, 9]
-    assert real_frames.spread(3, 8) == [0, 1, 2]
-    assert real_frames.spread(5, None) == [0, 1, 2, 3, 4]
-
-
 def test_icl_depth_side_is_the_sensor_depth_as_it_is():
     """A sensor RGB-D frame is used as it is: no densification, no projection round trip."""
     cfg = config_for("icl")
