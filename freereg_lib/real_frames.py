@@ -9,16 +9,19 @@ solver). Real frames, no synthetic scene: a change to the solver, the depth hand
 evaluation that costs registration on real data shows here.
 
     python -m freereg_lib.real_frames [--pairs 12] [--iters 50000]
+    python -m freereg_lib.real_frames --demo path/to/FreeReg/data/demo
+
+``--demo`` runs the same on the official demo pair instead (``config_for("demo")``, its
+``source_rgb.gtd.png`` as the true depth, matches scored with ``target_dpt.gtd.png``).
 """
 from __future__ import annotations
 
 import argparse
-import math
 import time
 
 import numpy as np
 
-from . import metrics, pipeline
+from . import pipeline
 from .config import FreeRegConfig, config_for
 from .datasets.icl import ICLSample
 from .sources import spread
@@ -27,21 +30,27 @@ DEPTHS = ("true", "stub")
 SOLVERS = ("kabsch", "pnp")
 
 
+def icl_pairs(n_pairs: int | None = 12):
+    """The ICL pairs of an evenly spread subset of the sample's pair list."""
+    sample = ICLSample()
+    pair_list = sample.pair_list()
+    for k in spread(len(pair_list), n_pairs):
+        yield sample.pair(*pair_list[k])
+
+
 def run(n_pairs: int | None = 12, depths=DEPTHS, solvers=SOLVERS, cfg: FreeRegConfig | None = None,
-        progress: bool = True) -> list[dict]:
-    """Rows ``pair, depth, solver, n_matches, n_inliers, scale, RE, TE, registered, seconds, error``."""
+        progress: bool = True, pairs=None) -> list[dict]:
+    """Rows ``pair, depth, solver, n_matches, n_inliers, scale, IR, IN, n_evaluable, RE, TE,
+    registered, seconds, error`` over ``pairs`` (default: :func:`icl_pairs` of ``n_pairs``)."""
     from tqdm.auto import tqdm
 
     from .backends import get_backend
 
     cfg = cfg or config_for("icl")
-    sample = ICLSample()
-    pair_list = sample.pair_list()
-    chosen = [pair_list[k] for k in spread(len(pair_list), n_pairs)]
+    pairs = list(icl_pairs(n_pairs)) if pairs is None else list(pairs)
     backend = get_backend("stub", cfg)
     rows = []
-    for i, j in tqdm(chosen, desc="ICL pairs", disable=not progress):
-        pair = sample.pair(i, j)
+    for pair in tqdm(pairs, desc="pairs", disable=not progress):
         for depth in depths:
             mono = pair.depth_gt if depth == "true" else backend.mono_depth(pair.image, depth_gt=pair.depth_gt)
             feats = pipeline.compute_features(pair, backend, cfg, diffusion=False, geometric=True, mono=mono)
@@ -50,10 +59,9 @@ def run(n_pairs: int | None = 12, depths=DEPTHS, solvers=SOLVERS, cfg: FreeRegCo
                 t0 = time.perf_counter()
                 res = pipeline.solve(pair, feats, m, cfg, solver)
                 seconds = time.perf_counter() - t0
-                re, te = metrics.pose_errors(res.T_cam_pc, pair.T_cam_pc) if res.success else (math.nan, math.nan)
+                scores = pipeline.evaluate(pair, feats, m, res, cfg)
                 rows.append({"pair": pair.name, "depth": depth, "solver": solver, "n_matches": len(m),
-                             "n_inliers": res.n_inliers, "scale": res.scale, "RE": re, "TE": te,
-                             "registered": metrics.registered(re, te, cfg.rr_rot_deg, cfg.rr_trans_m),
+                             "n_inliers": res.n_inliers, "scale": res.scale, **scores,
                              "seconds": seconds, "error": res.reason})
     return rows
 
@@ -72,20 +80,30 @@ def main(argv=None) -> None:
     p.add_argument("--iters", type=int, default=50_000, help="RANSAC iterations (the paper's 50000)")
     p.add_argument("--kabsch-scoring", default="official", choices=("official", "open3d"))
     p.add_argument("--edge-filter", type=float, default=None, help="cfg.edge_filter_m (default: the config's)")
+    p.add_argument("--demo", metavar="DIR", help="the official demo folder (data/demo of the official code) "
+                                                 "instead of the ICL sample")
     a = p.parse_args(argv)
     changes = {"ransac_iters": a.iters, "kabsch_scoring": a.kabsch_scoring}
     if a.edge_filter is not None:
         changes["edge_filter_m"] = a.edge_filter
-    cfg = config_for("icl", **changes)
-    rows = run(a.pairs or None, cfg=cfg)
-    print(f"\nICL living room, FreeReg-G (FPFH), config_for('icl'): densify {cfg.densify!r}, edge filter "
-          f"{cfg.edge_filter_m:g} m, {cfg.ransac_iters} iterations, Kabsch scoring {cfg.kabsch_scoring!r}")
-    print("| depth | solver | pairs | RR % | median RE (deg) | median TE (m) | solver s / pair |")
-    print("|---|---|---|---|---|---|---|")
+    if a.demo:
+        from .datasets.demo import load_demo_pair
+
+        cfg = config_for("demo", **changes)
+        rows, title = run(cfg=cfg, pairs=[load_demo_pair(a.demo)]), f"the official demo ({a.demo})"
+    else:
+        cfg = config_for("icl", **changes)
+        rows, title = run(a.pairs or None, cfg=cfg), "ICL living room"
+    print(f"\n{title}, FreeReg-G (FPFH), densify {cfg.densify!r}, edge filter {cfg.edge_filter_m:g} m, "
+          f"{cfg.ransac_iters} iterations, Kabsch scoring {cfg.kabsch_scoring!r}")
+    print("| depth | solver | pairs | RR % | IR % | IN | evaluable | median RE (deg) | median TE (m) | solver s / pair |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for (depth, solver), rr in recall(rows).items():
         sel = [r for r in rows if r["depth"] == depth and r["solver"] == solver]
-        print(f"| {depth} | {solver} | {len(sel)} | {100 * rr:.1f} | {np.nanmedian([r['RE'] for r in sel]):.2f} | "
-              f"{np.nanmedian([r['TE'] for r in sel]):.3f} | {np.mean([r['seconds'] for r in sel]):.2f} |")
+        col = lambda k: [r[k] for r in sel]  # noqa: E731
+        print(f"| {depth} | {solver} | {len(sel)} | {100 * rr:.1f} | {100 * np.mean(col('IR')):.1f} | "
+              f"{np.mean(col('IN')):.1f} | {np.mean(col('n_evaluable')):.0f} / {np.mean(col('n_matches')):.0f} | "
+              f"{np.nanmedian(col('RE')):.2f} | {np.nanmedian(col('TE')):.3f} | {np.mean(col('seconds')):.2f} |")
 
 
 if __name__ == "__main__":
