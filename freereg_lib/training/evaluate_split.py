@@ -23,7 +23,6 @@ import json
 import math
 import platform
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -207,8 +206,9 @@ def main(argv=None) -> int:
             cache=Path(args.cache) if args.cache else None)
         return 0
     res = summarize(load_rows(args.rows), args.split)
-    res["commands"] = args.run_command + ["python -m freereg_lib.training.evaluate_split " + " ".join(
-        sys.argv[1:] if argv is None else argv)]
+    res["commands"] = args.run_command + [
+        f"python -m freereg_lib.training.evaluate_split --split {args.split} --summarize --rows {' '.join(args.rows)}"
+        + (f" --out {args.out}" if args.out else "")]
     res["git_head"] = _git_head()
     res["machine"] = f"{platform.processor() or platform.machine()}, {platform.python_version()}"
     print(report(res))
