@@ -218,7 +218,7 @@ def _split(path: Path, title: str) -> list[str]:
         method, solver = key.rsplit(" ", 1)
         lines.append(f"| {method} | {'Kabsch' if solver == 'kabsch' else 'PnP'} | {_ci(v['IR'])} | {_ci(v['FMR'])} | "
                      f"{_ci(v['RR'])} |")
-    lines += ["", "Fused FreeReg against each half (paired permutation test over pairs): " + "; ".join(
+    lines += ["", "Paired permutation tests over pairs (fused against each half, Kabsch against PnP): " + "; ".join(
         f"{k} {t['diff']:+.1f} points (p {_p_text(t['p'])})" for k, t in r["tests"].items()) + ".",
         "The paper on 3DMatch (Table 1): FreeReg-D IR 39.6 %, FreeReg-G 31.4 %, FreeReg 47.0 %; FreeReg RR 63.8 %.",
         "", "Made by: " + "; ".join(f"`{c}`" for c in r["commands"]) + f" (`{path.name}`).", ""]

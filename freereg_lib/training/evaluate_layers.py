@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -138,8 +137,9 @@ def main(argv=None) -> int:
         run(args.split, args.pairs or SPLITS[args.split].n_pairs, Path(args.rows[0]), args.shard)
         return 0
     res = summarize(load_rows(args.rows), args.split)
-    res["commands"] = args.run_command + ["python -m freereg_lib.training.evaluate_layers " + " ".join(
-        sys.argv[1:] if argv is None else argv)]
+    res["commands"] = args.run_command + [
+        f"python -m freereg_lib.training.evaluate_layers --split {args.split} --summarize --rows {' '.join(args.rows)}"
+        + (f" --out {args.out}" if args.out else "")]
     res["git_head"] = _git_head()
     print(report(res))
     if args.out:

@@ -153,6 +153,9 @@ def summarize(recs: list[dict], split_name: str) -> dict:
             a, b = per[f"FreeReg {s}"]["registered_per_pair"], per[f"{other} {s}"]["registered_per_pair"]
             tests[f"RR {s}: FreeReg - {other}"] = {"diff": 100 * float(np.mean(a) - np.mean(b)),
                                                   "p": paired_permutation_p(a, b)}
+    for m in METHODS:
+        a, b = per[f"{m} kabsch"]["registered_per_pair"], per[f"{m} pnp"]["registered_per_pair"]
+        tests[f"RR {m}: kabsch - pnp"] = {"diff": 100 * float(np.mean(a) - np.mean(b)), "p": paired_permutation_p(a, b)}
     return {
         "split": split.name, "dataset_seed": split.seed, "noise_seed": split.noise_seed,
         "pair_seeds": f"{split.seed} * 1_000_003 + k for k in 0..{len(recs) - 1}",

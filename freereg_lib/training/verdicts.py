@@ -38,6 +38,16 @@ def _ahead(a: float, b: float) -> str:
     return "holds" if a > b else ("cannot be told (a tie)" if a == b else "does not hold")
 
 
+def _claim(above: bool, tests: dict, key: str, halves: dict[str, str]) -> str:
+    """'holds' only when the fused value is above both halves and significantly so (paired test)."""
+    if not above:
+        return "does not hold here"
+    weak = [f"{name} (p = {tests[key.format(other)]['p']:.2f})" for other, name in halves.items()
+            if tests[key.format(other)]["p"] >= 0.05]
+    return "holds here (significantly above both)" if not weak else (
+        "not shown here: above both in the mean, not significantly above " + " and ".join(weak))
+
+
 def glimpse(n_pairs: int) -> str:
     """The label of a notebook's live verdict lines."""
     return (f"Glimpse: {n_pairs} live pair(s), too few to decide anything (RR moves in steps of "
@@ -60,14 +70,17 @@ def table1() -> list[str]:
     for m in ("IR", "FMR"):
         f, d, g = (res[f"{k} kabsch"][m] for k in ("FreeReg", "FreeReg-D", "FreeReg-G"))
         above = f["mean"] > max(d["mean"], g["mean"])
+        verdict = (_claim(above, tests, "IR: FreeReg - {}", {"FreeReg-D": "FreeReg-D", "FreeReg-G": "FreeReg-G"})
+                   if m == "IR" else ("above both in the mean" if above else "not above both"))
         lines.append(f"  {m}: FreeReg {_ci(f)}, FreeReg-D {_ci(d)}, FreeReg-G {_ci(g)}; fused above both "
-                     f"(the paper's indoor rows): {'holds' if above else 'does not hold'} here")
+                     f"(the paper's indoor rows): {verdict}")
     for other in ("FreeReg-D", "FreeReg-G"):
         t = tests[f"IR: FreeReg - {other}"]
         lines.append(f"    IR, FreeReg - {other}: {t['diff']:+.1f} points ({_sig(t['p'])})")
     k, p = res["FreeReg kabsch"]["RR"], res["FreeReg pnp"]["RR"]
     lines.append(f"  RR with the fused matches: Kabsch {_ci(k)}, PnP {_ci(p)}; the paper's Kabsch ahead indoors "
-                 f"(63.8 vs 40.0 on 3DMatch): {_ahead(k['mean'], p['mean'])} here")
+                 f"(63.8 vs 40.0 on 3DMatch): {_ahead(k['mean'], p['mean'])} here"
+                 + (f" ({_sig(tests['RR FreeReg: kabsch - pnp']['p'])})" if "RR FreeReg: kabsch - pnp" in tests else ""))
     for m in ("FreeReg-D", "FreeReg-G"):
         lines.append(f"  RR {m}: Kabsch {_ci(res[f'{m} kabsch']['RR'])}, PnP {_ci(res[f'{m} pnp']['RR'])}")
     return lines
@@ -83,9 +96,10 @@ def table4() -> list[str]:
     for m in ("IR", "RR"):
         one, half, zero = (res[f"{k} kabsch"][m] for k in ("FreeReg-D", "FreeReg", "FreeReg-G"))
         above = half["mean"] > max(one["mean"], zero["mean"])
-        lines.append(f"  {m}: w = 1 {_ci(one)}, w = 0.5 {_ci(half)}, w = 0 {_ci(zero)}; the paper's peak inside "
-                     f"(0, 1) above both ends: {'holds' if above else 'does not hold'} here")
         key = "IR" if m == "IR" else "RR kabsch"
+        verdict = _claim(above, tests, key + ": FreeReg - {}", {"FreeReg-D": "w = 1", "FreeReg-G": "w = 0"})
+        lines.append(f"  {m}: w = 1 {_ci(one)}, w = 0.5 {_ci(half)}, w = 0 {_ci(zero)}; the paper's peak inside "
+                     f"(0, 1) above both ends: {verdict}")
         for other in ("FreeReg-D", "FreeReg-G"):
             t = tests[f"{key}: FreeReg - {other}"]
             lines.append(f"    w = 0.5 - w = {1 if other == 'FreeReg-D' else 0}: {t['diff']:+.1f} points ({_sig(t['p'])})")
@@ -126,6 +140,7 @@ def table2() -> list[str]:
             best = r["rows"][b["micro"]][m]
             lines.append(f"  best combination by {m}: {tuple(b['micro_layers'])} {best['mean']:.1f} "
                          f"[{best['ci'][0]:.1f}, {best['ci'][1]:.1f}] against (0, 4, 6) {m_row['mean']:.1f} "
-                         f"[{m_row['ci'][0]:.1f}, {m_row['ci'][1]:.1f}] ({_sig(b['p_best_vs_m'])}); "
-                         f"the paper's best: row {b['paper']} -> (0, 4, 6) is not the best combination here")
+                         f"[{m_row['ci'][0]:.1f}, {m_row['ci'][1]:.1f}] ({_sig(b['p_best_vs_m'])}; the paper's best: "
+                         f"row {b['paper']}) -> " + ("(0, 4, 6) is not the best combination here" if b["p_best_vs_m"] < 0.05
+                                                     else "a tie within the noise: no evidence against (0, 4, 6)"))
     return lines
