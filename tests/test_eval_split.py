@@ -38,3 +38,14 @@ def test_summary_uses_the_longest_complete_prefix_and_one_noise_seed(tmp_path):
 def test_the_splits_are_the_documented_ones():
     assert (splits.DEV.seed, splits.DEV.n_pairs, splits.DEV.noise_seed) == (2026, 30, 0)
     assert splits.TEST.seed == 4049 and splits.TEST.pair_seeds(2) == [4049 * 1_000_003, 4049 * 1_000_003 + 1]
+
+
+def test_the_notebook_verdicts_read_the_committed_test_split():
+    from freereg_lib.training import verdicts
+
+    for table in (verdicts.table1, verdicts.table2, verdicts.table4, verdicts.table9):
+        lines = table()
+        assert lines[0].startswith("Committed test split"), lines[0]
+        assert "100 synthetic indoor pairs" in lines[0]
+    assert "disagree with the paper" in "\n".join(verdicts.table2())
+    assert verdicts.glimpse(3).startswith("Glimpse: 3 live pair(s)")
