@@ -6,7 +6,9 @@
   :mod:`.retrain` reruns the committed schedule; :mod:`.train_depth`, :mod:`.train_fcgf` the
   micro ZoeDepth and FCGF;
 * :mod:`.evaluate`, :mod:`.evaluate_depth`, :mod:`.evaluate_fcgf`, :mod:`.diagnose` measure them
-  on held-out synthetic pairs; :mod:`.card` writes the model cards beside the weights.
+  on synthetic pairs no training room reaches (the development set and the test split,
+  :mod:`.splits`; :mod:`.evaluate_split`, :mod:`.evaluate_layers`, :mod:`.fusion_sweep`);
+  :mod:`.card` writes the model cards beside the weights.
 
 Each is a ``python -m freereg_lib.training.<name>`` command. The library (pipeline, backends,
 :mod:`freereg_lib.micro`, which holds the architectures and loads the weights) never imports

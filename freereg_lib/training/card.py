@@ -413,7 +413,7 @@ def write_fcgf_card(folder: Path = M.WEIGHTS_DIR / "fcgf") -> Path:
             lines += [
                 "## Held-out quality: the features alone",
                 "",
-                f"{ev['n_pairs']} held-out synthetic indoor pairs (`make_pairs({ev['n_pairs']}, \"indoor\", "
+                f"{ev['n_pairs']} synthetic indoor pairs (`make_pairs({ev['n_pairs']}, \"indoor\", "
                 f"seed={ev['seed']})`), the image side on its *true* depth so only the descriptors differ;",
                 "the pipeline's keypoints, mutual nearest neighbours; % with 95 % bootstrap intervals over",
                 "pairs (`python -m freereg_lib.training.evaluate_fcgf`). FMR: share of pairs with IR > 5 %.",

@@ -198,7 +198,7 @@ SHORT_LABELS = {
 
 
 def report(result: dict) -> str:
-    lines = [f"FreeReg-D IR on {result['n_pairs']} held-out synthetic indoor pairs (seed {result['seed']}, "
+    lines = [f"FreeReg-D IR on {result['n_pairs']} synthetic indoor pairs (seed {result['seed']}, "
              f"noise seed {result['noise_seed'] if result['noise_seed'] is not None else 'default'}, "
              f"{result['weights']} weights), the depth side's maps from:"]
     for name in VARIANTS:

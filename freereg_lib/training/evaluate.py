@@ -112,7 +112,7 @@ def evaluate(n_pairs: int = 30, seed: int = 2026, weights_dir=None, progress: bo
 
 
 def report(result: dict) -> str:
-    lines = [f"FreeReg-D (layers 0, 4, 6; PnP) on {result['trained']['n_pairs']} held-out synthetic indoor "
+    lines = [f"FreeReg-D (layers 0, 4, 6; PnP) on {result['trained']['n_pairs']} synthetic indoor "
              f"pairs (seed {result['seed']}; {result['config_changes'] or 'default config'}):"]
     for name in ("trained", "random"):
         if name not in result:

@@ -147,7 +147,7 @@ def report(result: dict) -> str:
     lines = []
     fa = result.get("features")
     if fa:
-        lines.append(f"Features alone (true image depth), {result['n_pairs']} held-out pairs (seed {result['seed']}):")
+        lines.append(f"Features alone (true image depth), {result['n_pairs']} pairs (seed {result['seed']}):")
         for name in ("micro FCGF", "FPFH", "random FCGF"):
             r = fa[name]
             lines.append(f"  {name:12s} IR@10cm {_fmt(r['IR@10cm'])}  FMR@10cm {_fmt(r['FMR@10cm'])}  "
