@@ -40,7 +40,7 @@ def icl_pairs(n_pairs: int | None = 12):
 
 def run(n_pairs: int | None = 12, depths=DEPTHS, solvers=SOLVERS, cfg: FreeRegConfig | None = None,
         progress: bool = True, pairs=None) -> list[dict]:
-    """Rows ``pair, depth, solver, n_matches, n_inliers, scale, IR, IN, n_evaluable, RE, TE,
+    """Rows ``pair, depth, solver, success, n_matches, n_inliers, scale, IR, IN, n_evaluable, RE, TE,
     registered, seconds, error`` over ``pairs`` (default: :func:`icl_pairs` of ``n_pairs``)."""
     from tqdm.auto import tqdm
 
@@ -60,8 +60,8 @@ def run(n_pairs: int | None = 12, depths=DEPTHS, solvers=SOLVERS, cfg: FreeRegCo
                 res = pipeline.solve(pair, feats, m, cfg, solver)
                 seconds = time.perf_counter() - t0
                 scores = pipeline.evaluate(pair, feats, m, res, cfg)
-                rows.append({"pair": pair.name, "depth": depth, "solver": solver, "n_matches": len(m),
-                             "n_inliers": res.n_inliers, "scale": res.scale, **scores,
+                rows.append({"pair": pair.name, "depth": depth, "solver": solver, "success": bool(res.success),
+                             "n_matches": len(m), "n_inliers": res.n_inliers, "scale": res.scale, **scores,
                              "seconds": seconds, "error": res.reason})
     return rows
 

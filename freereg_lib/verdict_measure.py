@@ -21,8 +21,6 @@ with gaps of 10 to ``max_gap`` frames (larger gaps: harder pairs, so both verdic
 from __future__ import annotations
 
 import argparse
-import math
-import time
 
 import numpy as np
 
@@ -54,40 +52,22 @@ def rows(n_pairs: int = 40, max_gap: int = 80, iters: int = 50_000, solvers=("ka
     fitted on the first. ``demo``: the official demo folder, added as one more pair."""
     import dataclasses
 
-    from tqdm.auto import tqdm
-
-    from . import metrics, pipeline
-    from .backends import get_backend
     from .config import config_for
     from .datasets.icl import ICLSample
+    from .real_frames import run
+    from .register import load_demo
 
-    cfg = config_for("demo", ransac_iters=iters)  # the command's indoor config
-    backend = get_backend("stub", cfg)
     sample = ICLSample()
     listed = sample.pair_list(max_gap=max_gap)
-    todo = ([None] if demo else []) + [listed[k] for k in pick(len(listed), n_pairs, held_out)]
-    out = []
-    for ij in tqdm(todo, desc="pairs", disable=not progress):
-        if ij is None:
-            from .register import load_demo
-
-            pair, (i, j) = load_demo(demo), (0, 0)
-        else:
-            i, j = ij
-            # As the command reads it: a cloud file (no sensor depth map) in its sensor's frame.
-            pair = dataclasses.replace(sample.pair(i, j), sensor_depth=None)
-        for depth in depths:
-            mono = pair.depth_gt if depth == "true" else backend.mono_depth(pair.image, depth_gt=pair.depth_gt)
-            feats = pipeline.compute_features(pair, backend, cfg, diffusion=False, geometric=True, mono=mono)
-            m = pipeline.match(feats, 0.0)
-            for solver in solvers:
-                t0 = time.perf_counter()
-                res = pipeline.solve(pair, feats, m, cfg, solver)
-                re, te = metrics.pose_errors(res.T_cam_pc, pair.T_cam_pc) if res.success else (math.nan, math.nan)
-                out.append({"pair": pair.name, "gap": j - i, "depth": depth, "solver": solver,
-                            "success": bool(res.success), "n_matches": len(m), "n_inliers": int(res.n_inliers),
-                            "scale": float(res.scale), "RE": re, "TE": te, "seconds": time.perf_counter() - t0})
-    return out
+    pairs = [load_demo(demo)] if demo else []
+    # As the command reads it: a cloud file (no sensor depth map) in its sensor's frame.
+    pairs += [dataclasses.replace(sample.pair(*listed[k]), sensor_depth=None)
+              for k in pick(len(listed), n_pairs, held_out)]
+    gaps = {p.name: p.meta.get("frame_cloud", 0) - p.meta.get("frame_image", 0) for p in pairs}
+    cfg = config_for("demo", ransac_iters=iters)  # the command's indoor config
+    keep = ("depth", "solver", "success", "n_matches", "n_inliers", "scale", "RE", "TE", "seconds")
+    return [{"pair": r["pair"], "gap": gaps[r["pair"]], **{k: r[k] for k in keep}}
+            for r in run(depths=depths, solvers=solvers, cfg=cfg, progress=progress, pairs=pairs)]
 
 
 def verdicts(table, min_inliers=None, min_ratio=None, max_scale=None) -> np.ndarray:
