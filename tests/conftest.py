@@ -8,10 +8,14 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy: see Makefile
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("MKL_NUM_THREADS", "1")
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from freereg_lib import cameras
+
+NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
 
 
 @pytest.fixture
@@ -35,3 +39,31 @@ def torch_one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+def fusion_key_source(name: str) -> str:
+    """The answer key's solution cell of notebook 03 that defines the function ``name``."""
+    import nbformat
+
+    from freereg_lib import assignments as A
+
+    nb = nbformat.read(str(NOTEBOOKS / "03_fusion.ipynb"), as_version=4)
+    for cell in nb.cells:
+        if A._is_solution(cell) and name in A._defined_functions(cell.source):
+            return cell.source
+    raise KeyError(name)
+
+
+def fusion_student(folder, *sources: str):
+    """A student's ``folder/03_fusion.ipynb`` whose solution cells are ``sources``; its path."""
+    import nbformat
+
+    nb = nbformat.v4.new_notebook()
+    for source in sources:
+        cell = nbformat.v4.new_code_cell(source)
+        cell.metadata["tags"] = ["solution"]
+        nb.cells.append(cell)
+    folder.mkdir(parents=True)
+    path = folder / "03_fusion.ipynb"
+    nbformat.write(nb, str(path))
+    return path

@@ -14,14 +14,13 @@ import sys
 import textwrap
 from pathlib import Path
 
-import nbformat
 import numpy as np
 import pytest
 
 from freereg_lib import assignments as A
 from freereg_lib.teaching import poison, wire
+from conftest import fusion_key_source, fusion_student
 
-NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
 # The hard limit of one student's process below. Every student but the one who hangs must finish
 # within it, start-up included: a student process imports nbformat, torch and the library (~6 s of
 # CPU, measured on a busy 2-core machine), 2-3x slower when the cores are shared. The hanging
@@ -29,25 +28,9 @@ NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
 LIMIT_S = 45
 
 
-def _key_source(name: str) -> str:
-    nb = nbformat.read(str(NOTEBOOKS / "03_fusion.ipynb"), as_version=4)
-    for cell in nb.cells:
-        if A._is_solution(cell) and name in A._defined_functions(cell.source):
-            return cell.source
-    raise KeyError(name)
-
-
 def _student(folder: Path, fuse_source: str) -> Path:
     """A 03_fusion notebook: the key's student_mutual_nn, and ``fuse_source`` as student_fuse."""
-    nb = nbformat.v4.new_notebook()
-    for source in (_key_source("student_mutual_nn"), fuse_source):
-        cell = nbformat.v4.new_code_cell(source)
-        cell.metadata["tags"] = ["solution"]
-        nb.cells.append(cell)
-    folder.mkdir(parents=True)
-    path = folder / "03_fusion.ipynb"
-    nbformat.write(nb, str(path))
-    return path
+    return fusion_student(folder, fusion_key_source("student_mutual_nn"), fuse_source)
 
 
 HANGS = """
@@ -108,9 +91,9 @@ def student_fuse(f_d, f_g, w):
 def test_each_student_in_its_own_process_results_written_as_each_finishes(tmp_path, capsys):
     students = {name: _student(tmp_path / name, source) for name, source in [
         ("hangs", HANGS), ("exits", EXITS), ("patches", PATCHES_IN_CALL), ("numpy", PATCHES_NUMPY),
-        ("calls", CALLS_REFERENCE), ("reloads", RELOADS), ("memory", _key_source("student_fuse") + HOGS_MEMORY),
+        ("calls", CALLS_REFERENCE), ("reloads", RELOADS), ("memory", fusion_key_source("student_fuse") + HOGS_MEMORY),
         ("floods", FLOODS),
-        ("honest", _key_source("student_fuse"))]}
+        ("honest", fusion_key_source("student_fuse"))]}
     report = tmp_path / "scores.json"
     argv = ["grade", *map(str, students.values()), "--json", str(report), "--timeout", "5", "--limit", str(LIMIT_S),
             "--memory-mb", "3072"]

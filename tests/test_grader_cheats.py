@@ -18,30 +18,11 @@ import os
 import time
 from pathlib import Path
 
-import nbformat
 import pytest
 
 from freereg_lib import assignments as A
 from freereg_lib.teaching import sandbox
-
-NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
-
-
-def _key_source(name: str) -> str:
-    nb = nbformat.read(str(NOTEBOOKS / "03_fusion.ipynb"), as_version=4)
-    return next(c.source for c in nb.cells if A._is_solution(c) and name in A._defined_functions(c.source))
-
-
-def _student(folder: Path, *sources: str) -> Path:
-    nb = nbformat.v4.new_notebook()
-    for source in sources:
-        cell = nbformat.v4.new_code_cell(source)
-        cell.metadata["tags"] = ["solution"]
-        nb.cells.append(cell)
-    folder.mkdir(parents=True)
-    path = folder / "03_fusion.ipynb"
-    nbformat.write(nb, str(path))
-    return path
+from conftest import fusion_key_source, fusion_student
 
 
 WRONG = """
@@ -152,18 +133,18 @@ def _sleepers() -> list[int]:
 def test_six_cheats_score_zero_the_honest_student_full_marks_and_nothing_survives(tmp_path, capsys, monkeypatch):
     # No cgroup, even where the grader could make one: the scan alone must find every leftover.
     monkeypatch.setattr(sandbox, "make_cgroup", lambda token: None)
-    mnn = _key_source("student_mutual_nn")
+    mnn = fusion_key_source("student_mutual_nn")
     students = {
-        "forges": _student(tmp_path / "forges", FORGES),
-        "patches_checker": _student(tmp_path / "patches_checker", PATCHES_CHECKER),
-        "no_profile": _student(tmp_path / "no_profile", NO_PROFILE),
-        "thread": _student(tmp_path / "thread", THREAD),
-        "runs_key": _student(tmp_path / "runs_key", RUNS_KEY),
-        "escapes": _student(tmp_path / "escapes", ESCAPES),
-        "honest": _student(tmp_path / "honest", mnn, _key_source("student_fuse")),
+        "forges": fusion_student(tmp_path / "forges", FORGES),
+        "patches_checker": fusion_student(tmp_path / "patches_checker", PATCHES_CHECKER),
+        "no_profile": fusion_student(tmp_path / "no_profile", NO_PROFILE),
+        "thread": fusion_student(tmp_path / "thread", THREAD),
+        "runs_key": fusion_student(tmp_path / "runs_key", RUNS_KEY),
+        "escapes": fusion_student(tmp_path / "escapes", ESCAPES),
+        "honest": fusion_student(tmp_path / "honest", mnn, fusion_key_source("student_fuse")),
     }
     if sandbox.landlock_abi() >= 6:  # Landlock's signal scope (Linux 6.12+): a seventh, who tries to kill the grader
-        students["kills_grader"] = _student(tmp_path / "kills_grader", KILLS_GRADER)
+        students["kills_grader"] = fusion_student(tmp_path / "kills_grader", KILLS_GRADER)
     report = tmp_path / "scores.json"
     start = time.time()
     assert A.main(["grade", *map(str, students.values()), "--json", str(report), "--timeout", "10",
