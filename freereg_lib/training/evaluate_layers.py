@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from .evaluate import paired_permutation_p
-from .evaluate_split import _done, _git_head, _stat, load_rows
+from .evaluate_split import _done, _git_head, _stat, load_rows, publish
 from .splits import SPLITS
 
 LAYER_SETS = {"a": [0], "b": [1], "c": [2], "d": [3], "e": [4], "f": [5], "g": [6], "h": [7], "i": [8],
@@ -141,9 +141,7 @@ def main(argv=None) -> int:
         f"python -m freereg_lib.training.evaluate_layers --split {args.split} --summarize --rows {' '.join(args.rows)}"
         + (f" --out {args.out}" if args.out else "")]
     res["git_head"] = _git_head()
-    print(report(res))
-    if args.out:
-        Path(args.out).write_text(json.dumps(res, indent=1) + "\n")
+    publish(res, report(res), args.out)
     return 0
 
 

@@ -189,6 +189,15 @@ def _git_head() -> str | None:
         return None
 
 
+def publish(res: dict, report_text: str, out: str | None) -> None:
+    """Print ``report_text`` and write ``res`` as JSON to ``out`` when given: the end of every
+    split command."""
+    print(report_text)
+    if out:
+        Path(out).parent.mkdir(parents=True, exist_ok=True)
+        Path(out).write_text(json.dumps(res, indent=1) + "\n")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--split", default="test", choices=sorted(SPLITS))
@@ -214,10 +223,7 @@ def main(argv=None) -> int:
         + (f" --out {args.out}" if args.out else "")]
     res["git_head"] = _git_head()
     res["machine"] = f"{platform.processor() or platform.machine()}, {platform.python_version()}"
-    print(report(res))
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(res, indent=1) + "\n")
+    publish(res, report(res), args.out)
     return 0
 
 

@@ -19,7 +19,6 @@ split pass the chosen setting alone.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -27,7 +26,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .evaluate import paired_permutation_p
-from .evaluate_split import _git_head, _stat, load_features
+from .evaluate_split import _git_head, _stat, load_features, publish
 from .splits import SPLITS
 
 
@@ -137,10 +136,7 @@ def main(argv=None) -> int:
     res = sweep(args.split, Path(args.cache), args.w, args.solvers, args.pairs, fpfh)
     res["commands"] = ["python -m freereg_lib.training.fusion_sweep " + " ".join(sys.argv[1:] if argv is None else argv)]
     res["git_head"] = _git_head()
-    print(report(res))
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(res, indent=1) + "\n")
+    publish(res, report(res), args.out)
     return 0
 
 
