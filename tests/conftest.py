@@ -29,6 +29,19 @@ def random_pose(rng: np.random.Generator, max_angle_deg: float = 30.0, max_t: fl
     return cameras.make_pose(cameras.rotation_about(axis, angle), rng.uniform(-max_t, max_t, size=3))
 
 
+def outlier_problem(seed: int = 0, n: int = 300, outliers: float = 0.6, scale: float = 1.0):
+    """``(pts_cam, pts_pc, T)``: ``n`` cloud points seen by a camera at ``T``, the image side divided
+    by ``scale`` (a monocular depth that far off), a share ``outliers`` of the partners replaced by
+    random points."""
+    rng = np.random.default_rng(seed)
+    T = cameras.make_pose(cameras.rotation_about([0.2, 1, 0.1], 0.4), [0.3, -0.2, 1.0])
+    pts_pc = rng.uniform([-2, -1, 1], [2, 1, 5], size=(n, 3))
+    pts_cam = cameras.transform(T, pts_pc) / scale
+    bad = rng.random(n) < outliers
+    pts_pc[bad] = rng.uniform([-2, -1, 1], [2, 1, 5], size=(int(bad.sum()), 3))
+    return pts_cam, pts_pc, T
+
+
 @pytest.fixture(scope="module")
 def torch_one_thread():
     """torch on one thread for a module: the tiny models are overhead-bound, and OpenMP threads

@@ -17,16 +17,7 @@ import pytest
 
 from freereg_lib import cameras, config_for, metrics, pipeline, pose
 from freereg_lib.config import FreeRegConfig
-
-
-def _problem(seed=0, n=200, outliers=0.6, scale=1.3):
-    rng = np.random.default_rng(seed)
-    T = cameras.make_pose(cameras.rotation_about([0.2, 1, 0.1], 0.4), [0.3, -0.2, 1.0])
-    pts_pc = rng.uniform([-2, -1, 1], [2, 1, 5], size=(n, 3))
-    pts_cam = cameras.transform(T, pts_pc) / scale
-    bad = rng.random(n) < outliers
-    pts_pc[bad] = rng.uniform([-2, -1, 1], [2, 1, 5], size=(int(bad.sum()), 3))
-    return pts_cam, pts_pc, T
+from conftest import outlier_problem
 
 
 def _eigen_umeyama(src, dst, with_scale):
@@ -65,7 +56,7 @@ def _open3d_012_loop(src, tgt, inlier_m, iterations, seed, ransac_n=4, with_scal
 
 @pytest.mark.parametrize("with_scale", [True, False])
 def test_vectorised_ransac_equals_open3d_012_loop(with_scale):
-    src, tgt, _ = _problem(outliers=0.7, scale=1.3 if with_scale else 1.0)
+    src, tgt, _ = outlier_problem(n=200, outliers=0.7, scale=1.3 if with_scale else 1.0)
     expected = _open3d_012_loop(src, tgt, 0.2, 600, seed=5, with_scale=with_scale)
     for batch in (1, 7, 256, 5000):
         got = pose.official_ransac(src, tgt, 0.2, 600, with_scale=with_scale, seed=5, batch=batch)
@@ -99,7 +90,7 @@ def test_default_config_does_not_call_open3d(monkeypatch):
 
     monkeypatch.setattr(o3d.pipelines.registration, "registration_ransac_based_on_correspondence", refuse)
     assert FreeRegConfig().kabsch_scoring == config_for("3dmatch").kabsch_scoring == "official"
-    pts_cam, pts_pc, T = _problem()
+    pts_cam, pts_pc, T = outlier_problem(n=200, scale=1.3)
     feats = pipeline.PairFeatures(np.zeros((200, 2)), pts_cam, np.zeros((200, 2)), pts_pc, None, None, None, None,
                                   None, None)
     res = pipeline.solve(None, feats, pipeline.Matches(np.arange(200), np.arange(200)), FreeRegConfig(), "kabsch")
@@ -131,7 +122,7 @@ def test_refinement_with_fewer_than_4_inliers_keeps_the_ransac_model():
 
 
 def test_kabsch_is_byte_identical_for_the_same_seed_and_differs_for_another():
-    src, tgt, _ = _problem(outliers=0.8)
+    src, tgt, _ = outlier_problem(n=200, outliers=0.8, scale=1.3)
     a = pose.kabsch_ransac(src, tgt, 0.2, 3000, seed=3)
     b = pose.kabsch_ransac(src, tgt, 0.2, 3000, seed=3)
     c = pose.official_ransac(src, tgt, 0.2, 3000, seed=4)

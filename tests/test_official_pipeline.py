@@ -6,6 +6,7 @@ import pytest
 from freereg_lib import cameras, config_for, densify, metrics, pipeline, pose, projection
 from freereg_lib.config import FreeRegConfig
 from freereg_lib.pair import Pair
+from conftest import outlier_problem
 
 K = cameras.intrinsics(20.0, 20.0, 15.5, 11.5)
 
@@ -169,17 +170,6 @@ def test_evaluation_lifts_the_depth_side_with_its_true_depth():
     assert dense["n_evaluable"] == 3 and dense["IN"] == 0  # 0.5 m off: no match within 0.3 m
 
 
-def _outlier_problem(seed=0, n=300, outliers=0.6, scale=1.0):
-    rng = np.random.default_rng(seed)
-    T = cameras.make_pose(cameras.rotation_about([0.2, 1, 0.1], 0.4), [0.3, -0.2, 1.0])
-    pts_pc = rng.uniform([-2, -1, 1], [2, 1, 5], size=(n, 3))
-    pts_cam = cameras.transform(T, pts_pc) / scale
-    bad = rng.random(n) < outliers
-    pts_pc = pts_pc.copy()
-    pts_pc[bad] = rng.uniform([-2, -1, 1], [2, 1, 5], size=(int(bad.sum()), 3))
-    return pts_cam, pts_pc, T
-
-
 def test_open3d_scoring_makes_the_official_call(monkeypatch):
     """``kabsch_scoring="open3d"``: the official code's Open3D call under the installed Open3D,
     all 50k iterations (confidence 1.0: no early stop), ransac_n 4, no checker, every keypoint."""
@@ -199,7 +189,7 @@ def test_open3d_scoring_makes_the_official_call(monkeypatch):
 
     monkeypatch.setattr(reg, "RANSACConvergenceCriteria", criteria)
     monkeypatch.setattr(reg, "registration_ransac_based_on_correspondence", ransac)
-    pts_cam, pts_pc, _ = _outlier_problem()
+    pts_cam, pts_pc, _ = outlier_problem()
     feats = pipeline.PairFeatures(np.zeros((300, 2)), pts_cam, np.zeros((300, 2)), pts_pc, None, None, None, None,
                                   None, None)
     m = pipeline.Matches(np.arange(0, 300, 3), np.arange(0, 300, 3))
@@ -210,7 +200,7 @@ def test_open3d_scoring_makes_the_official_call(monkeypatch):
 
 @pytest.mark.parametrize("scoring", ["official", "open3d"])
 def test_kabsch_recovers_a_similarity_with_outliers(scoring):
-    pts_cam, pts_pc, T = _outlier_problem(scale=1.3, outliers=0.5)
+    pts_cam, pts_pc, T = outlier_problem(scale=1.3, outliers=0.5)
     res = pose.kabsch_ransac(pts_cam, pts_pc, 0.2, 5000, scoring=scoring)
     re, te = metrics.pose_errors(res.T_cam_pc, T)
     assert res.success and re < 0.5 and te < 0.05 and abs(res.scale - 1.3) < 0.01
