@@ -11,13 +11,13 @@ RUN ?= runs/reproduce
 
 # Runs the notebooks into $(RUN), then writes the site ($(RUN)/site) and the README's gallery.
 reproduce: .venv/.installed
-	$(PY) -m freereg_lib.reproduce --out $(RUN)
+	$(PY) -m freereg_lib reproduce --out $(RUN)
 
 # The executed notebooks of $(RUN), the pages of docs/ and an API reference from the docstrings as one
-# static HTML site, $(RUN)/site/index.html (freereg_lib/site.py: nbconvert for the notebooks, its markdown
+# static HTML site, $(RUN)/site/index.html (freereg_lib/commands/site.py: nbconvert for the notebooks, its markdown
 # renderer for docs/, the source read with ast for the API).
 book: .venv/.installed
-	$(PY) -m freereg_lib.site $(RUN)
+	$(PY) -m freereg_lib.commands.site $(RUN)
 
 # Two pytest workers (pytest-xdist), a test file or notebook each at a time: many tests wait on
 # kernels and subprocesses, so two keep both cores busy. nbmake's 300 s cell limit is for one

@@ -21,10 +21,11 @@ import time
 
 import numpy as np
 
-from freereg_lib import cameras, config_for, metrics, pipeline, pose
-from freereg_lib.backends import get_backend
-from freereg_lib.datasets.icl import ICLSample
-from freereg_lib.sources import spread
+from freereg_lib import config_for, pipeline
+from freereg_lib.data.datasets.icl import ICLSample
+from freereg_lib.data.sources import spread
+from freereg_lib.geometry import cameras, metrics, pose
+from freereg_lib.models import get_backend
 
 SCORINGS = ("official", "open3d")
 

@@ -28,9 +28,9 @@ def main(argv=None) -> int:
 
     import torch
 
-    from freereg_lib.backends import get_backend
     from freereg_lib.config import FreeRegConfig
-    from freereg_lib.synthetic import make_pairs
+    from freereg_lib.data.synthetic import make_pairs
+    from freereg_lib.models import get_backend
 
     torch.set_num_threads(a.threads)
     images = [pr.image for pr in make_pairs(a.images, "indoor", seed=a.seed)]

@@ -26,7 +26,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_pipeline import cpu_model  # noqa: E402  (also puts the repository on sys.path)
+from bench_meter import cpu_model  # noqa: E402  (this folder is on sys.path when run as a script)
 
 WARM = 2  # steps before the timed ones: the first steps of a stage pay for allocation
 PRECISIONS = ("no", "bf16")  # train_diffusion --mixed-precision
@@ -35,7 +35,8 @@ PRECISIONS = ("no", "bf16")  # train_diffusion --mixed-precision
 def schedule_steps() -> list[dict[str, int]]:
     """Steps each phase of the committed schedule trains, per stage (a continued stage trains
     from the step the previous phase left it at, a restarted ControlNet from step 0)."""
-    from freereg_lib.training import retrain, train_diffusion as T
+    from freereg_lib.training import retrain
+    from freereg_lib.training import train_diffusion as T
 
     done = {s: 0 for s in T.STAGES}
     phases = []
@@ -59,8 +60,9 @@ def main(argv=None) -> int:
 
     import torch
 
-    from freereg_lib.micro import models as M
-    from freereg_lib.training import retrain, train_diffusion as T
+    from freereg_lib.models.micro import diffusion as M
+    from freereg_lib.training import retrain
+    from freereg_lib.training import train_diffusion as T
     from freereg_lib.training.views import render_views, save_views
 
     torch.set_num_threads(a.threads)

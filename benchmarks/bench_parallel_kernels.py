@@ -6,7 +6,7 @@ Runs ``python -m freereg_lib.training.evaluate --pairs P --trained-only`` (the m
 chain: torch diffusion features, PnP) once alone, then K copies at the same time with the
 environment's thread settings minus ``OMP_NUM_THREADS`` / ``MKL_NUM_THREADS`` (torch then
 uses every core in each copy), then K copies with the share the batch runner's local Dask
-workers give their kernels (:func:`freereg_lib.cluster.worker_thread_env`), and prints the
+workers give their kernels (:func:`freereg_lib.commands.cluster.worker_thread_env`), and prints the
 wall times. This is what ``batch run --executor dask`` on a CPU machine and ``pytest -n 2``
 do: several notebook kernels at once on the same cores.
 """
@@ -22,7 +22,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from freereg_lib.cluster import THREAD_VARIABLES, available_cores, worker_thread_env  # noqa: E402
+from freereg_lib.commands.cluster import THREAD_VARIABLES, available_cores, worker_thread_env  # noqa: E402
 
 
 def run_copies(copies: int, pairs: int, env: dict) -> float:

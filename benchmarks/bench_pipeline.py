@@ -57,11 +57,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
 import contextlib
-import ctypes
-import datetime
-import gc
 import json
-import platform
 import statistics
 import sys
 import time
@@ -71,10 +67,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np
-
-from fullsize_models import build_fullsize_backend  # noqa: E402  (this folder is on sys.path when run as a script)
-
-MIB = 1024.0 ** 2
+from bench_meter import Meter, device_info, format_device  # noqa: E402  (this folder is on sys.path when run as a script)
+from fullsize_models import build_fullsize_backend  # noqa: E402
 
 # The paper's solvers for the full method; ``--variants all`` adds FreeReg-D / FreeReg-G.
 PAPER_VARIANTS = (("FreeReg", "pnp"), ("FreeReg", "kabsch"))
@@ -93,128 +87,6 @@ STAGES = (
     "solver Kabsch-RANSAC",
     "metrics",
 )
-
-
-# ---------------------------------------------------------------------------------------
-# The device.
-
-def cpu_model() -> str:
-    """The CPU's model name (``/proc/cpuinfo``, else what ``platform`` knows)."""
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.lower().startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def device_info(mode: str, device: str | None) -> dict:
-    import cv2
-    import open3d
-    import torch
-
-    from freereg_lib.cluster import available_cores
-
-    n_cpu = available_cores()
-    info = {
-        "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-        "mode": mode,
-        "cpu": cpu_model(),
-        "cpu_cores": n_cpu,
-        "load_average": [round(x, 2) for x in os.getloadavg()],
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-        "torch_threads": torch.get_num_threads(),
-        "numpy": np.__version__,
-        "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS"),
-        "opencv": cv2.__version__,
-        "opencv_threads": cv2.getNumThreads(),
-        "open3d": open3d.__version__,
-        "gpu": None,
-    }
-    if device is not None and device.startswith("cuda") and torch.cuda.is_available():
-        idx = torch.device(device).index or 0
-        prop = torch.cuda.get_device_properties(idx)
-        info["gpu"] = f"{prop.name} ({prop.total_memory / 1024**3:.1f} GiB, CUDA {torch.version.cuda})"
-    return info
-
-
-def format_device(info: dict) -> str:
-    lines = [
-        f"device: CPU {info['cpu']} ({info['cpu_cores']} cores available, load average "
-        f"{' '.join(str(x) for x in info['load_average'])})",
-        f"        torch {info['torch']} ({info['torch_threads']} threads), numpy {info['numpy']} "
-        f"(OPENBLAS_NUM_THREADS={info['OPENBLAS_NUM_THREADS']}), OpenCV {info['opencv']} "
-        f"({info['opencv_threads']} threads), Open3D {info['open3d']}, Python {info['python']}",
-    ]
-    if info.get("gpu"):
-        lines.append(f"        GPU {info['gpu']}")
-    lines.append(f"date:   {info['date']}    mode: {info['mode']}")
-    return "\n".join(lines)
-
-
-# ---------------------------------------------------------------------------------------
-# Memory meters.
-
-def _malloc_trim() -> None:
-    try:
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
-        pass
-
-
-def _proc_status_kib(key: str) -> int | None:
-    try:
-        with open("/proc/self/status") as fh:
-            for line in fh:
-                if line.startswith(key + ":"):
-                    return int(line.split()[1])
-    except OSError:
-        pass
-    return None
-
-
-def _reset_hwm() -> bool:
-    try:
-        with open("/proc/self/clear_refs", "w") as fh:
-            fh.write("5")
-        return True
-    except OSError:
-        return False
-
-
-class Meter:
-    """Peak memory of one call: tracemalloc, VmHWM and (on CUDA) the torch allocator."""
-
-    def __init__(self, cuda: bool = False):
-        self.cuda = cuda
-        self.hwm_ok = _reset_hwm()
-
-    @contextlib.contextmanager
-    def measure(self, out: dict):
-        gc.collect()
-        _malloc_trim()
-        if self.cuda:
-            import torch
-
-            torch.cuda.synchronize()
-            torch.cuda.reset_peak_memory_stats()
-        tracemalloc.reset_peak()
-        py0 = tracemalloc.get_traced_memory()[0]
-        rss0 = _proc_status_kib("VmRSS") if self.hwm_ok and _reset_hwm() else None
-        try:
-            yield
-        finally:
-            if self.cuda:
-                import torch
-
-                torch.cuda.synchronize()
-                out["gpu_peak_mib"] = torch.cuda.max_memory_allocated() / MIB
-            out["py_peak_mib"] = max(tracemalloc.get_traced_memory()[1] - py0, 0) / MIB
-            hwm = _proc_status_kib("VmHWM") if rss0 is not None else None
-            out["rss_peak_mib"] = max(hwm - rss0, 0) / 1024.0 if hwm is not None else None
 
 
 # ---------------------------------------------------------------------------------------
@@ -264,11 +136,14 @@ class Recorder:
 @contextlib.contextmanager
 def instrumented(rec: Recorder, backend):
     """Wrap the functions ``pipeline.run_pair`` calls, for the duration of the block."""
-    from freereg_lib import features, geometric, pipeline, pose
+    from freereg_lib import features
+    from freereg_lib.features import geometric
+    from freereg_lib.geometry import pose
+    from freereg_lib.pipeline import steps
 
     targets = [
-        (pipeline, "depth_view", "projection + densify"),
-        (pipeline, "scene_hints", "stub scene hints"),
+        (steps, "depth_view", "projection + densify"),
+        (steps, "scene_hints", "stub scene hints"),
         (backend, "diffusion_rgb_batch", "diffusion RGB"),
         (backend, "diffusion_depth_batch", "diffusion depth"),
         (features, "pca_reduce", "PCA + keypoint sampling"),
@@ -276,10 +151,10 @@ def instrumented(rec: Recorder, backend):
         (backend, "mono_depth", "monocular depth"),
         (geometric, "geometric_features", "geometric features"),
         (geometric, "pixel_features", "geometric features"),
-        (pipeline, "match", "matching"),
+        (steps, "match", "matching"),
         (pose, "pnp_ransac", "solver PnP-RANSAC"),
         (pose, "kabsch_ransac", "solver Kabsch-RANSAC"),
-        (pipeline, "evaluate", "metrics"),
+        (steps, "evaluate", "metrics"),
     ]
     saved = []
     try:
@@ -410,7 +285,7 @@ def measure_pair_batch(backend, pair, cfg, B: int, reps: int, warmup: int, cuda:
 def matching_micro(n: int, dim: int, reps: int, device: str, cuda: bool) -> dict:
     """Mutual NN of ``n`` x ``n`` unit descriptors of ``dim`` channels (the depth side a noisy
     permutation of the image side, so about 90 % of the keypoints have a true partner)."""
-    from freereg_lib import matching
+    from freereg_lib.features import matching
 
     rng = np.random.default_rng(0)
     a = rng.standard_normal((n, dim)).astype(np.float32)
@@ -539,11 +414,12 @@ def parse_args(argv=None):
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    import torch
     import cv2
+    import torch
 
-    from freereg_lib import config_for, synthetic
-    from freereg_lib.backends import get_backend
+    from freereg_lib import config_for
+    from freereg_lib.data import synthetic
+    from freereg_lib.models import get_backend
 
     ci = args.mode == "ci"
     gpu = args.mode == "gpu"
@@ -599,7 +475,7 @@ def main(argv=None) -> int:
     notes: list[str] = []
 
     if args.mode == "micro":
-        from freereg_lib.micro import fcgf as MF
+        from freereg_lib.models.micro import fcgf as MF
 
         # FCGF only when a micro FCGF exists (none is committed: README, "Micro FCGF").
         geos = ["fpfh"] + (["fcgf"] if (MF.folder_of(None) / MF.WEIGHTS_FILE).is_file() else [])

@@ -42,14 +42,14 @@ DEFAULT_METHODS = ("iterative", "usac", "usac_accurate", "ap3p")
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench_pipeline import cpu_model  # noqa: E402  (this folder is on sys.path when run as a script)
+from bench_meter import cpu_model  # noqa: E402  (this folder is on sys.path when run as a script)
 
 
 def device_line() -> str:
     """CPU model, usable cores, load average, OpenCV version and threads, date."""
     import cv2
 
-    from freereg_lib.cluster import available_cores
+    from freereg_lib.commands.cluster import available_cores
 
     cores = available_cores()
     load = " ".join(f"{x:.2f}" for x in os.getloadavg())
@@ -136,8 +136,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     from tqdm import tqdm
 
-    from freereg_lib import config_for, pipeline, pose, synthetic
-    from freereg_lib.backends import get_backend
+    from freereg_lib import config_for, pipeline
+    from freereg_lib.data import synthetic
+    from freereg_lib.geometry import pose
+    from freereg_lib.models import get_backend
 
     unknown = [m for m in args.methods if _spec(m)[0] not in pose.PNP_METHODS or _spec(m)[1] < 1]
     if unknown:

@@ -102,12 +102,11 @@ def build_fullsize_backend(cfg, device: str, resize_hw):
     library runs it)."""
     import torch
     from diffusers import AutoencoderKL, ControlNetModel, UNet2DConditionModel
-    from transformers import BeitConfig, CLIPTextConfig, CLIPTextModel, ZoeDepthConfig, \
-        ZoeDepthForDepthEstimation
+    from transformers import BeitConfig, CLIPTextConfig, CLIPTextModel, ZoeDepthConfig, ZoeDepthForDepthEstimation
 
-    from freereg_lib.backends.diffusion import SD15_UNET_CONFIG, DiffusionFeatures, tiny_tokenizer
-    from freereg_lib.backends.torch_backends import TinyBackend, resolve_device
-    from freereg_lib.backends.zoedepth import ZoeDepthEstimator, _processor_class
+    from freereg_lib.models.diffusion import SD15_UNET_CONFIG, DiffusionFeatures, tiny_tokenizer
+    from freereg_lib.models.torch_backends import TinyBackend, resolve_device
+    from freereg_lib.models.zoedepth import ZoeDepthEstimator, _processor_class
 
     dev, _ = resolve_device(device)
     dev, dtype = resolve_device(device, cfg.dtype if dev.type == "cuda" else "float32")

@@ -1,6 +1,6 @@
-"""``python -m freereg_lib register ...``: the ``freereg`` command (:mod:`freereg_lib.cli`)."""
+"""``python -m freereg_lib register ...``: the ``freereg`` command (:mod:`freereg_lib.commands.cli`)."""
 import sys
 
-from .cli import main
+from freereg_lib.commands.cli import main
 
 sys.exit(main())

@@ -11,6 +11,8 @@ import numbers
 import typing
 from dataclasses import dataclass, field
 
+import numpy as np
+
 # The official configs' prompts; the backends append ", best quality" (the official a_prompt), so
 # the conditional text is exactly "a photo of a room, furniture, household items, best quality".
 INDOOR_PROMPT = "a photo of a room, furniture, household items"
@@ -30,7 +32,7 @@ def ranged(default, interval, *, distinct: bool = False):
     field it holds for every entry; a tuple of intervals holds entry by entry within each item
     (``rr_ladder``'s (deg, m) rungs). ``distinct``: one or more entries, none repeated.
     :func:`range_problem` checks a value against it; ``FreeRegConfig``, the notebooks'
-    parameter check (:mod:`freereg_lib.params`) and the batch grid check all call it.
+    parameter check (:mod:`freereg_lib.report.params`) and the batch grid check all call it.
     """
     return field(default=default, metadata={"range": interval, "distinct": distinct})
 
@@ -122,6 +124,12 @@ class FreeRegConfig:
         _check_types(self)
         _check_ranges(self)
 
+    def group(self, name: str) -> dict:
+        """The fields of one of :data:`GROUPS` (``"solvers"``, ``"evaluation"``, ...) as a dict."""
+        if name not in GROUPS:
+            raise KeyError(f"unknown config group {name!r}; known: {list(GROUPS)}")
+        return {f: getattr(self, f) for f in GROUPS[name]}
+
     def override(self, **changes) -> "FreeRegConfig":
         """A copy with ``changes``; unknown names raise a ``TypeError`` naming them."""
         known = {f.name for f in dataclasses.fields(self)}
@@ -129,6 +137,25 @@ class FreeRegConfig:
         if unknown:
             raise TypeError(f"unknown config field(s) {unknown}; known: {sorted(known)}")
         return dataclasses.replace(self, **changes)
+
+
+# The config's responsibilities, in pipeline order. The fields stay flat (the notebooks'
+# parameters, the batch grids and ``override`` name them directly); every field belongs to
+# exactly one group, and ``FreeRegConfig.group(name)`` reads one.
+GROUPS: dict[str, tuple[str, ...]] = {
+    "run": ("outdoor", "seed", "extra"),
+    "backend": ("sd_unet_variant", "controlnet", "dtype", "batched_guidance", "pair_batch"),
+    "diffusion": ("resize_hw", "t_hat", "ddim_steps", "ddim_eta", "guidance_w", "controlnet_scale", "prompt",
+                  "negative_prompt", "layers", "pca_dim", "pca_device"),
+    "projection": ("densify", "depth_min", "depth_max", "edge_filter_m", "cloud_far_m", "cloud_near_m",
+                   "cloud_projection", "multiscale_hole_m", "dense_png", "depth_png_scale"),
+    "geometric": ("geometric", "voxel_size", "fpfh_voxel", "fpfh_radius_factor", "normal_radius_factor", "tau_g"),
+    "matching": ("fusion_w", "keypoint_grid", "match_device"),
+    "solvers": ("ransac_iters", "kabsch_inlier_m", "kabsch_with_scale", "kabsch_scoring", "kabsch_confidence",
+                "kabsch_max_scale_ratio", "ransac_n", "pnp_reproj_px", "pnp_method", "pnp_workers",
+                "min_matches_kabsch", "min_matches_pnp"),
+    "evaluation": ("tau_c", "fmr_ratio", "rr_rot_deg", "rr_trans_m", "rr_ladder", "eval_few_matches"),
+}
 
 
 def config_for(dataset: str, kitti_trans_threshold: float = 3.0, **changes) -> FreeRegConfig:
@@ -258,10 +285,6 @@ def _conforms(value, tp):
 
 
 def _np_bool():
-    try:
-        import numpy as np
-    except ImportError:  # pragma: no cover
-        return bool
     return np.bool_
 
 

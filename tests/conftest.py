@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from freereg_lib import cameras
+from freereg_lib.geometry import cameras
 
 NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
 
@@ -58,7 +58,7 @@ def fusion_key_source(name: str) -> str:
     """The answer key's solution cell of notebook 03 that defines the function ``name``."""
     import nbformat
 
-    from freereg_lib import assignments as A
+    from freereg_lib.teaching import assignments as A
 
     nb = nbformat.read(str(NOTEBOOKS / "03_fusion.ipynb"), as_version=4)
     for cell in nb.cells:

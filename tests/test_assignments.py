@@ -27,7 +27,7 @@ import pytest
 nbformat = pytest.importorskip("nbformat")
 papermill = pytest.importorskip("papermill")
 
-from freereg_lib import assignments as A  # noqa: E402
+from freereg_lib.teaching import assignments as A  # noqa: E402
 from freereg_lib.teaching.notebooks import _assert_no_solution  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -157,7 +157,7 @@ def test_dist_hands_out_the_library_and_student_notebooks_without_any_answer_key
     out = tmp_path / "handout"
     assert archive == tmp_path / "handout.zip" and archive.is_file()
     assert sorted(p.name for p in (out / "notebooks").glob("*.ipynb")) == sorted(p.name for p in NOTEBOOKS.glob("*.ipynb"))
-    assert (out / "freereg_lib" / "features.py").is_file() and (out / "environment").is_dir()
+    assert (out / "freereg_lib" / "features" / "descriptors.py").is_file() and (out / "environment").is_dir()
     assert not (out / "tests").exists() and not (out / "assignments").exists()
     assert not list(out.rglob("__pycache__"))
     for stem in WITH_EXERCISES:  # the notebooks are the student versions: stubs, not solutions
@@ -298,7 +298,7 @@ def test_grader_reports_a_missing_notebook_and_a_missing_path(student_dir, tmp_p
 
 
 def test_module_runs_as_a_command():
-    proc = subprocess.run([sys.executable, "-m", "freereg_lib.assignments", "list"],
+    proc = subprocess.run([sys.executable, "-m", "freereg_lib.teaching.assignments", "list"],
                           capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr
     for name in A.EXERCISES:

@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from freereg_lib import assignments as A
-from freereg_lib.teaching import poison, wire
 from conftest import fusion_key_source, fusion_student
+
+from freereg_lib.teaching import assignments as A
+from freereg_lib.teaching import poison, wire
 
 # The hard limit of one student's process below. Every student but the one who hangs must finish
 # within it, start-up included: a student process imports nbformat, torch and the library (~6 s of
@@ -117,7 +117,7 @@ def test_each_student_in_its_own_process_results_written_as_each_finishes(tmp_pa
         assert e["score"] == 0 and e["status"] == "failed" and "values differ" in e["message"], e
     for s in ("calls", "reloads"):
         e = by[s]["student_fuse"]
-        assert e["score"] == 0 and e["status"] == "refused" and "freereg_lib.features.fuse" in e["message"], e
+        assert e["score"] == 0 and e["status"] == "refused" and "freereg_lib.features.descriptors.fuse" in e["message"], e
     memory = by["memory"]["student_fuse"]
     assert memory["score"] == 5 and "MemoryError" in memory["cases"][0]["message"], memory
     floods = by["floods"]["student_fuse"]
@@ -165,7 +165,7 @@ def test_the_alteration_beats_every_tolerance_and_the_grader_reproduces_it():
     from freereg_lib import features
 
     f_d, f_g = rng.normal(size=(5, 3)), rng.normal(size=(5, 4))
-    with poison.altered(["features.fuse"], "k"):
+    with poison.altered(["features.descriptors.fuse"], "k"):
         altered = features.fuse(f_d, f_g, 0.5)
     assert np.array_equal(altered, poison.perturb(features.fuse(f_d, f_g, 0.5), "k"))
 
@@ -174,7 +174,7 @@ def test_in_the_student_process_the_reference_stays_altered_however_it_is_reache
     code = textwrap.dedent("""
         import importlib, sys, threading, numpy as np
         from freereg_lib.teaching import poison
-        poison.install(["features.fuse"], "k")
+        poison.install(["features.descriptors.fuse"], "k")
         from freereg_lib import features
         from freereg_lib.features import fuse as alias
         a, b = np.eye(3), np.ones((3, 2))

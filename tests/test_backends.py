@@ -7,7 +7,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from freereg_lib.backends import (  # noqa: E402
+from freereg_lib.config import FreeRegConfig  # noqa: E402
+from freereg_lib.models import (
     MissingWeightsError,
     depth_hint,
     depth_to_uint8,
@@ -16,14 +17,8 @@ from freereg_lib.backends import (  # noqa: E402
     n_guided_steps,
     official_resize_hw,
 )
-from freereg_lib.backends import weights as WTS  # noqa: E402
-from freereg_lib.backends.diffusion import (  # noqa: E402
-    SD15_UNET_CONFIG,
-    DecoderTap,
-    StopForward,
-    guidance,
-)
-from freereg_lib.config import FreeRegConfig  # noqa: E402
+from freereg_lib.models import weights as WTS  # noqa: E402
+from freereg_lib.models.diffusion import SD15_UNET_CONFIG, DecoderTap, StopForward, guidance
 
 TINY_HW = (128, 192)
 
@@ -328,7 +323,7 @@ def test_cuda_request_without_cuda_is_a_clear_error():
 
 
 def test_device_defaults():
-    from freereg_lib.backends.torch_backends import resolve_device
+    from freereg_lib.models.torch_backends import resolve_device
 
     dev, dt = resolve_device("cpu")
     assert dev.type == "cpu" and dt == torch.float32

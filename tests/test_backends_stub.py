@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from freereg_lib.backends import StubBackend, get_backend
-from freereg_lib.backends.stub import PAPER_CHANNELS
 from freereg_lib.config import FreeRegConfig, config_for
+from freereg_lib.models import StubBackend, get_backend
+from freereg_lib.models.stub import PAPER_CHANNELS
 
 H, W = 120, 160
 

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from freereg_lib import batch
+from freereg_lib.commands import batch
 from freereg_lib.config import FreeRegConfig, config_for, field_range, range_problem
-from freereg_lib.params import ParameterError, check_parameters
+from freereg_lib.report.params import ParameterError, check_parameters
 
 # (field, bad value) pairs of the issue and of the brief; each must be refused naming the field.
 BAD = [

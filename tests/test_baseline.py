@@ -8,10 +8,12 @@ from types import SimpleNamespace
 import numpy as np
 import pandas as pd
 
-from freereg_lib import baseline, keypoints, pipeline
-from freereg_lib.backends import get_backend
+from freereg_lib import pipeline
 from freereg_lib.config import config_for
-from freereg_lib.datasets.icl import ICLSample
+from freereg_lib.data.datasets.icl import ICLSample
+from freereg_lib.features import baseline
+from freereg_lib.geometry import keypoints
+from freereg_lib.models import get_backend
 
 
 def test_position_matches_pair_the_same_or_nearest_pixel():

@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from freereg_lib import batch
+from freereg_lib.commands import batch
 from freereg_lib.config import config_for
 
 FIXTURE = Path(__file__).parent / "fixtures" / "batch_fixture.ipynb"

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-
-from freereg_lib import batch, cluster
 from test_batch_faults import ROOT, _grid, _wait_for  # the fixture notebook's grids, polling
+
+from freereg_lib.commands import batch, cluster
 
 distributed = pytest.importorskip("distributed")
 psutil = pytest.importorskip("psutil")  # a dependency of distributed
@@ -52,7 +52,7 @@ def test_a_killed_worker_or_kernel_reruns_its_job_once_and_the_table_is_the_loca
     runs = tmp_path / "runs"
     out, err = open(tmp_path / "stdout.txt", "w"), open(tmp_path / "stderr.txt", "w")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "freereg_lib.batch", "run", str(grid), "--runs-dir", str(runs), "--executor", "dask",
+        [sys.executable, "-m", "freereg_lib.commands.batch", "run", str(grid), "--runs-dir", str(runs), "--executor", "dask",
          "--gpus", "0,1", "--resources", "GPU=1", "--retries", "1", "--dashboard", "127.0.0.1:0"],
         cwd=ROOT, stdout=out, stderr=err)
     try:
@@ -173,7 +173,7 @@ def test_an_unreachable_scheduler_is_one_line(tmp_path, capsys):
 
 
 def test_the_local_executor_needs_no_dask():
-    code = ("import sys, freereg_lib.batch, freereg_lib.cluster; "
+    code = ("import sys, freereg_lib.commands.batch, freereg_lib.commands.cluster; "
             "print(sorted(m for m in sys.modules if m.split('.')[0] in ('dask', 'distributed')))")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"

@@ -17,7 +17,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from freereg_lib import batch
+from freereg_lib.commands import batch
 
 FIXTURE = Path(__file__).parent / "fixtures" / "batch_fixture.ipynb"
 ROOT = Path(__file__).resolve().parent.parent
@@ -187,7 +187,7 @@ def test_a_job_of_another_library_is_flagged_by_merge_and_rerun_by_run(tmp_path,
 # Killing a run or a kernel at any point, then re-running, gives the uninterrupted table.
 
 def _start(grid: Path, runs: Path) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "freereg_lib.batch", "run", str(grid), "--runs-dir", str(runs)],
+    return subprocess.Popen([sys.executable, "-m", "freereg_lib.commands.batch", "run", str(grid), "--runs-dir", str(runs)],
                             cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import yaml
 
-from freereg_lib import batch
+from freereg_lib.commands import batch
 
 FIXTURE = Path(__file__).parent / "fixtures" / "batch_fixture.ipynb"
 ROOT = Path(__file__).resolve().parent.parent
@@ -29,7 +29,7 @@ def test_a_second_runner_on_the_same_folder_stops_with_one_line(tmp_path, capsys
                                     "base": {"n_pairs": 2, "hold_file": str(hold), "counter_file": str(counter)}}))
     runs = tmp_path / "runs"
     hold.write_text("seed=0,scale=1.0\n")
-    first = subprocess.Popen([sys.executable, "-m", "freereg_lib.batch", "run", str(grid), "--runs-dir", str(runs)],
+    first = subprocess.Popen([sys.executable, "-m", "freereg_lib.commands.batch", "run", str(grid), "--runs-dir", str(runs)],
                              cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         _wait_for(lambda: counter.exists() and counter.read_text().strip(), "the first runner's job")
@@ -57,7 +57,7 @@ def test_the_lock_is_released_when_the_block_ends_or_fails(tmp_path):
         pass
     with batch.lock_run_folder(tmp_path):
         holder = subprocess.run(
-            [sys.executable, "-c", "import sys; from pathlib import Path; from freereg_lib.batch import "
+            [sys.executable, "-c", "import sys; from pathlib import Path; from freereg_lib.commands.batch import "
              "lock_run_folder\nwith lock_run_folder(Path(sys.argv[1])): pass", str(tmp_path)],
             cwd=ROOT, capture_output=True, text=True)
         assert holder.returncode != 0 and "RunFolderLocked" in holder.stderr and "in use by another runner" in holder.stderr

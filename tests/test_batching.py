@@ -9,10 +9,12 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from freereg_lib import cameras, config_for, pipeline, synthetic  # noqa: E402
-from freereg_lib.backends import get_backend  # noqa: E402
-from freereg_lib.cache import CachedBackend  # noqa: E402
-from freereg_lib.pair import UnreadablePair  # noqa: E402
+from freereg_lib import config_for, pipeline
+from freereg_lib.commands.cache import CachedBackend  # noqa: E402
+from freereg_lib.data import synthetic
+from freereg_lib.data.pair import UnreadablePair  # noqa: E402
+from freereg_lib.geometry import cameras  # noqa: E402
+from freereg_lib.models import get_backend  # noqa: E402
 
 SMALL = (64, 128)
 CFG = config_for("synthetic_indoor", ddim_steps=5, ransac_iters=2000)  # fast solver

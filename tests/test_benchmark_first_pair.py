@@ -4,10 +4,9 @@ from pathlib import Path
 
 import papermill
 import pytest
-
-from freereg_lib import batch
-
 from test_loaders import POSES, make_scannet
+
+from freereg_lib.commands import batch
 
 NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
 

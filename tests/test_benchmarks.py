@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from freereg_lib import cameras, matching, projection
+from freereg_lib.features import matching
+from freereg_lib.geometry import cameras, projection
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "benchmarks" / "bench_pipeline.py"

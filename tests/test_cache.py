@@ -5,7 +5,7 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from freereg_lib.cache import CachedBackend, feature_params
+from freereg_lib.commands.cache import CachedBackend, feature_params
 from freereg_lib.config import config_for
 
 

@@ -11,9 +11,9 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from freereg_lib.backends import get_backend
-from freereg_lib.cache import CachedBackend, backend_identity, feature_params
+from freereg_lib.commands.cache import CachedBackend, backend_identity, feature_params
 from freereg_lib.config import config_for
+from freereg_lib.models import get_backend
 
 
 class Fake:

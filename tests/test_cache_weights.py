@@ -20,10 +20,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from freereg_lib import weightcheck
-from freereg_lib.cache import CachedBackend, backend_identity
-from freereg_lib.micro import models as M
-from freereg_lib.weightcheck import MANIFEST, WeightsError
+from freereg_lib.commands.cache import CachedBackend, backend_identity
+from freereg_lib.models import weightcheck
+from freereg_lib.models.micro import diffusion as M
+from freereg_lib.models.weightcheck import MANIFEST, WeightsError
 
 ROOT = Path(__file__).resolve().parent.parent
 IMAGE = np.arange(6 * 8 * 3, dtype=np.uint8).reshape(6, 8, 3)
@@ -142,9 +142,9 @@ def test_every_committed_weight_file_is_in_a_manifest_that_verifies():
     folders = [d for d in M.WEIGHTS_DIR.iterdir() if d.is_dir() and weightcheck.model_files(d)]
     assert {d.name for d in folders} >= {"vae", "unet", "controlnet", "text_encoder", "tokenizer", "depth"}
     for d in folders:
-        assert (d / MANIFEST).is_file(), f"{d} has no {MANIFEST}: python -m freereg_lib.weightcheck write"
+        assert (d / MANIFEST).is_file(), f"{d} has no {MANIFEST}: python -m freereg_lib.models.weightcheck write"
         assert sorted(weightcheck.verify_manifest(d)) == sorted(f.name for f in weightcheck.model_files(d))
-    done = subprocess.run([sys.executable, "-m", "freereg_lib.weightcheck", "verify"], cwd=ROOT,
+    done = subprocess.run([sys.executable, "-m", "freereg_lib.models.weightcheck", "verify"], cwd=ROOT,
                           capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
 
@@ -172,7 +172,7 @@ def test_bit_flipped_micro_weights_are_refused_naming_the_file(tmp_path):
 
 def test_bit_flipped_micro_depth_weights_are_refused_naming_the_file(tmp_path):
     pytest.importorskip("transformers")
-    from freereg_lib.micro import depth as MD
+    from freereg_lib.models.micro import depth as MD
 
     depth = _copy("depth", tmp_path)
     _flip_a_bit(depth / "model.safetensors")
@@ -197,7 +197,7 @@ def test_manifests_are_regenerated_by_the_savers_and_the_script(tmp_path):
 
 def test_a_truncated_depth_safetensors_file_is_named(tmp_path):
     pytest.importorskip("transformers")
-    from freereg_lib.micro import depth as MD
+    from freereg_lib.models.micro import depth as MD
 
     depth = _copy("depth", tmp_path)
     (depth / MANIFEST).unlink()  # the file check itself, not the checksum
@@ -225,7 +225,7 @@ def test_a_micro_config_that_does_not_fit_the_weights_is_named(tmp_path):
 
 def test_a_micro_config_that_is_not_json_is_named(tmp_path):
     pytest.importorskip("transformers")
-    from freereg_lib.micro import depth as MD
+    from freereg_lib.models.micro import depth as MD
 
     depth = _copy("depth", tmp_path)
     (depth / MANIFEST).unlink()
@@ -240,7 +240,7 @@ def test_a_micro_config_that_is_not_json_is_named(tmp_path):
 
 def test_an_fcgf_checkpoint_of_another_model_is_named(tmp_path):
     torch = pytest.importorskip("torch")
-    from freereg_lib.backends.fcgf import load_fcgf
+    from freereg_lib.models.fcgf import load_fcgf
 
     path = tmp_path / "other.pth"
     torch.save({"state_dict": {"encoder.weight": torch.zeros(3)}}, path)
@@ -253,7 +253,7 @@ def test_an_fcgf_checkpoint_of_another_model_is_named(tmp_path):
 
 def test_a_text_file_an_empty_file_and_a_cut_file_given_as_a_checkpoint_are_named(tmp_path):
     torch = pytest.importorskip("torch")
-    from freereg_lib.backends.fcgf import CheckpointRefused, load_fcgf
+    from freereg_lib.models.fcgf import CheckpointRefused, load_fcgf
 
     text = tmp_path / "ckpt.pth"
     text.write_text("<html><body>404 Not Found</body></html>\n")
@@ -275,7 +275,7 @@ def test_a_micro_fcgf_whose_weights_do_not_fit_is_named(tmp_path):
     pytest.importorskip("torch")
     from safetensors.torch import save_file
 
-    from freereg_lib.micro import fcgf as MF
+    from freereg_lib.models.micro import fcgf as MF
 
     net = MF.build(0)
     state = {k: v.contiguous() for k, v in net.state_dict().items() if not k.startswith("block1")}

@@ -39,3 +39,17 @@ def test_wrong_types_are_refused_naming_the_field(change, message):
         config_for("3dmatch", **change)
     with pytest.raises(TypeError, match=message):
         FreeRegConfig().override(**change)
+
+
+def test_every_config_field_is_in_exactly_one_group():
+    import dataclasses
+
+    from freereg_lib.config import GROUPS
+
+    names = [f.name for f in dataclasses.fields(FreeRegConfig)]
+    placed = [f for fields in GROUPS.values() for f in fields]
+    assert sorted(placed) == sorted(names), (set(names) ^ set(placed), [f for f in placed if placed.count(f) > 1])
+    cfg = FreeRegConfig().override(ransac_iters=7, tau_c=0.25)
+    assert cfg.group("solvers")["ransac_iters"] == 7 and cfg.group("evaluation")["tau_c"] == 0.25
+    with pytest.raises(KeyError, match="unknown config group"):
+        cfg.group("solver")

@@ -16,13 +16,15 @@ import warnings
 import cv2
 import numpy as np
 import pytest
+from test_loaders import POSES, assert_convention, make_3dmatch, make_demo, make_scannet, render, write_rgb
 
-from freereg_lib import cameras, config_for, projection, sources, synthetic
-from freereg_lib.datasets import common, pairlists, registry
-from freereg_lib.datasets.demo import load_demo_pair
-from freereg_lib.datasets.scannet import ScanNet
-from freereg_lib.datasets.threedmatch import FreeRegScenes, ThreeDMatch
-from test_loaders import POSES, assert_convention, make_demo, make_3dmatch, make_scannet, render, write_rgb
+from freereg_lib import config_for
+from freereg_lib.data import sources, synthetic
+from freereg_lib.data.datasets import common, pairlists, registry
+from freereg_lib.data.datasets.demo import load_demo_pair
+from freereg_lib.data.datasets.scannet import ScanNet
+from freereg_lib.data.datasets.threedmatch import FreeRegScenes, ThreeDMatch
+from freereg_lib.geometry import cameras, projection
 
 K3 = cameras.intrinsics(585, 585, 320, 240)
 
@@ -114,7 +116,8 @@ def test_scannet_and_kitti_fill_sensor_depth(tmp_path):
 
 def test_kitti_sensor_depth_is_scan_j_projected_on_the_depth_camera(tmp_path):
     from test_loaders import test_kitti_calibration_oxts_poses_crop_and_pose_convention as make_kitti
-    from freereg_lib.datasets.kitti import KittiDC
+
+    from freereg_lib.data.datasets.kitti import KittiDC
 
     make_kitti(tmp_path)  # writes the drive (and checks the loader's conventions)
     ds = KittiDC(tmp_path / "kitti", frame_step=1)

@@ -1,8 +1,9 @@
 """The whole chain on synthetic scenes with the stub: a check that it is wired right."""
 import numpy as np
 
-from freereg_lib import config_for, pipeline, synthetic
-from freereg_lib.backends import get_backend
+from freereg_lib import config_for, pipeline
+from freereg_lib.data import synthetic
+from freereg_lib.models import get_backend
 
 
 def test_stub_fused_kabsch_registers_most_synthetic_indoor_pairs():

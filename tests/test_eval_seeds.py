@@ -2,15 +2,15 @@
 
 NumPy splits an integer seed into 32-bit little-endian words, so the integer
 ``TRAIN_ROOMS + k * 2**32`` is the seed sequence ``(TRAIN_ROOMS, k)`` of training room ``k``. The
-guard (:func:`freereg_lib.synthetic.check_eval_seed`) refuses such integers; the last two tests show
+guard (:func:`freereg_lib.data.synthetic.check_eval_seed`) refuses such integers; the last two tests show
 that without it they *would* reproduce the training data, array for array.
 """
 import numpy as np
 import pytest
 
-from freereg_lib import sources, synthetic
-from freereg_lib.synthetic import pairs as synthetic_pairs
-from freereg_lib.synthetic.seeds import TRAIN_FCGF_PAIRS, TRAIN_ROOMS, TrainingSeedError, check_eval_seed
+from freereg_lib.data import sources, synthetic
+from freereg_lib.data.synthetic import pairs as synthetic_pairs
+from freereg_lib.data.synthetic.seeds import TRAIN_FCGF_PAIRS, TRAIN_ROOMS, TrainingSeedError, check_eval_seed
 from freereg_lib.training import splits, views
 
 K = 3

@@ -4,7 +4,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from freereg_lib.cameras import bilinear_sample
 from freereg_lib.features import (
     fuse,
     l2_normalize,
@@ -12,6 +11,7 @@ from freereg_lib.features import (
     resize_bilinear,
     sample_features,
 )
+from freereg_lib.geometry.cameras import bilinear_sample
 
 SIZES = [(8, 11)] * 3 + [(16, 22)] * 3 + [(32, 44)] * 3
 

@@ -13,7 +13,7 @@ import pandas as pd  # noqa: E402
 import pytest  # noqa: E402
 from PIL import Image  # noqa: E402
 
-from freereg_lib import plots  # noqa: E402
+from freereg_lib.report import charts, plots  # noqa: E402
 
 
 def _noisy_wide_figure():
@@ -66,7 +66,7 @@ def test_layouts_fit_the_width(draw):
     elif draw == "metric_bars":
         t = pd.DataFrame({"method": list("abcdef"), **{m: rng.random(6) * 100 for m in ("FMR", "IR", "IN", "RR")},
                           **{f"{m}_paper": rng.random(6) * 100 for m in ("FMR", "IR", "IN", "RR")}})
-        fig = plots.metric_bars(t, ["FMR", "IR", "IN", "RR"], "method", "Table 1")
+        fig = charts.metric_bars(t, ["FMR", "IR", "IN", "RR"], "method", "Table 1")
     elif draw == "show_images":
         fig = plots.show_images([image, plots.depth_panel(depth), plots.depth_panel(depth, 5.0)], list("abc"), "s")
     else:
@@ -78,11 +78,11 @@ def test_layouts_fit_the_width(draw):
 
 
 def test_metric_axes_in_percent_and_depth_colour_bars_in_metres():
-    assert plots.metric_label("IR") == "IR (%)"
-    assert plots.metric_label("RR@5deg/0.1m") == "RR@5deg/0.1m (%)"
-    assert "%" not in plots.metric_label("IN")
+    assert charts.metric_label("IR") == "IR (%)"
+    assert charts.metric_label("RR@5deg/0.1m") == "RR@5deg/0.1m (%)"
+    assert "%" not in charts.metric_label("IN")
     t = pd.DataFrame({"w": [0.0, 0.5, 1.0], "IR": [10.0, 20.0, 15.0], "IR_paper": [30.0, 45.0, 39.0]})
-    fig = plots.paper_vs_rerun(t, "w", ["IR"], "Table 4")
+    fig = charts.paper_vs_rerun(t, "w", ["IR"], "Table 4")
     ax = fig.axes[0]
     fig.canvas.draw()
     assert ax.get_ylabel() == "IR (%)"

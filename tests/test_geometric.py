@@ -6,13 +6,9 @@ import pytest
 
 pytest.importorskip("open3d")
 
-from freereg_lib.cameras import make_pose, rotation_about, transform  # noqa: E402
 from freereg_lib.config import FreeRegConfig  # noqa: E402
-from freereg_lib.geometric import (  # noqa: E402
-    fpfh_features,
-    geometric_features,
-    pixel_features,
-)
+from freereg_lib.features.geometric import fpfh_features, geometric_features, pixel_features
+from freereg_lib.geometry.cameras import make_pose, rotation_about, transform  # noqa: E402
 
 
 def room_corner(rng, n=6000):
@@ -122,7 +118,7 @@ def _random_sites(rng, n, grid, stride=1):
 
 def test_sparse_convs_match_dense_convolutions():
     torch = pytest.importorskip("torch")
-    from freereg_lib.backends.fcgf import SparseTensor, _Lookup, modules
+    from freereg_lib.models.fcgf import SparseTensor, _Lookup, modules
 
     MEConv = modules()[0]
     rng = np.random.default_rng(0)
@@ -172,7 +168,7 @@ def test_sparse_convs_match_dense_convolutions():
 
 def test_fcgf_resunetbn2c_state_dict_layout_and_features(tmp_path):
     torch = pytest.importorskip("torch")
-    from freereg_lib.backends.fcgf import ResUNetBN2C, fcgf_features, load_fcgf
+    from freereg_lib.models.fcgf import ResUNetBN2C, fcgf_features, load_fcgf
 
     torch.manual_seed(0)
     net = ResUNetBN2C(conv1_kernel_size=5).eval()
@@ -214,8 +210,8 @@ def test_fcgf_resunetbn2c_state_dict_layout_and_features(tmp_path):
 
 def test_fcgf_through_geometric_features(tmp_path, monkeypatch):
     torch = pytest.importorskip("torch")
-    from freereg_lib.backends import MissingWeightsError
-    from freereg_lib.backends.fcgf import ResUNetBN2C
+    from freereg_lib.models import MissingWeightsError
+    from freereg_lib.models.fcgf import ResUNetBN2C
 
     monkeypatch.delenv("FREEREG_WEIGHTS", raising=False)
     cfg = FreeRegConfig(geometric="fcgf", voxel_size=0.05,
@@ -234,7 +230,7 @@ def test_fcgf_through_geometric_features(tmp_path, monkeypatch):
 def test_fcgf_3dmatch_checkpoint_is_the_2_5_cm_model():
     """The paper's footnote: the 2.5 cm 3DMatch model, 2019-08-19_06-17-41.pth (FCGF's
     2019-08-16_19-21-47.pth is its 5 cm model)."""
-    from freereg_lib.backends.fcgf import CHECKPOINTS
+    from freereg_lib.models.fcgf import CHECKPOINTS
 
     assert CHECKPOINTS["3dmatch"] == dict(file="2019-08-19_06-17-41.pth", conv1_kernel_size=7, voxel=0.025)
     assert CHECKPOINTS["kitti"]["file"] == "KITTI-v0.3-ResUNetBN2C-conv1-5-nout32.pth"
@@ -252,7 +248,7 @@ class _RunsCode:
 
 def test_fcgf_checkpoint_that_would_run_code_is_refused_without_running_it(tmp_path):
     torch = pytest.importorskip("torch")
-    from freereg_lib.backends.fcgf import CheckpointRefused, ResUNetBN2C, load_fcgf
+    from freereg_lib.models.fcgf import CheckpointRefused, ResUNetBN2C, load_fcgf
 
     marker = tmp_path / "pwned"
     state = ResUNetBN2C(conv1_kernel_size=7).state_dict()
@@ -285,7 +281,7 @@ def test_fcgf_checkpoint_with_its_easydict_config_loads(tmp_path, monkeypatch):
     import types
 
     torch = pytest.importorskip("torch")
-    from freereg_lib.backends.fcgf import ResUNetBN2C, _load_checkpoint_file, load_fcgf
+    from freereg_lib.models.fcgf import ResUNetBN2C, _load_checkpoint_file, load_fcgf
 
     mod = types.ModuleType("easydict")
     mod.EasyDict = _EasyDict
@@ -322,7 +318,9 @@ def _one_torch_thread():
 def test_fpfh_at_the_keypoints_equals_the_full_computation():
     """``at``: only the rows the keypoints read are computed, bitwise the full features' rows,
     so the keypoints' features are identical (the pipeline's use)."""
-    from freereg_lib import cameras, config_for, keypoints, synthetic
+    from freereg_lib import config_for
+    from freereg_lib.data import synthetic
+    from freereg_lib.geometry import cameras, keypoints
 
     cfg = config_for("synthetic_indoor")
     pair = synthetic.make_pair("indoor", seed=3, image_size=(240, 320))

@@ -1,9 +1,10 @@
 """Cameras, projection, densification, keypoints and mutual nearest neighbours."""
 import numpy as np
 import pytest
-
-from freereg_lib import cameras, densify, keypoints, matching, projection
 from conftest import random_pose
+
+from freereg_lib.features import matching
+from freereg_lib.geometry import cameras, densify, keypoints, projection
 
 
 def test_invert_and_compose(rng):

@@ -19,11 +19,10 @@ import time
 from pathlib import Path
 
 import pytest
-
-from freereg_lib import assignments as A
-from freereg_lib.teaching import sandbox
 from conftest import fusion_key_source, fusion_student
 
+from freereg_lib.teaching import assignments as A
+from freereg_lib.teaching import sandbox
 
 WRONG = """
 def student_fuse(f_d, f_g, w):
@@ -52,7 +51,7 @@ def student_fuse(f_d, f_g, w):
 os._exit(0)
 """
 PATCHES_CHECKER = """
-import freereg_lib.assignments as A
+import freereg_lib.teaching.assignments as A
 from freereg_lib.teaching import exercises, grader
 exercises._assert_close = lambda *a, **k: None
 for e in exercises.EXERCISES.values():
@@ -165,7 +164,7 @@ def test_six_cheats_score_zero_the_honest_student_full_marks_and_nothing_survive
     assert results["forges"]["status"] == "exited" and fuse["forges"]["status"] == "stopped"
     assert fuse["patches_checker"]["status"] == "failed"
     for s in ("no_profile", "thread"):
-        assert fuse[s]["status"] == "refused" and "freereg_lib.features.fuse" in fuse[s]["message"], fuse[s]
+        assert fuse[s]["status"] == "refused" and "freereg_lib.features.descriptors.fuse" in fuse[s]["message"], fuse[s]
     if sandbox.landlock_abi():
         assert results["runs_key"]["confined"] is True
         assert fuse["runs_key"]["status"] == "missing" and "PermissionError" in fuse["runs_key"]["message"]

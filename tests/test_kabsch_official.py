@@ -14,10 +14,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from freereg_lib import cameras, config_for, metrics, pipeline, pose
-from freereg_lib.config import FreeRegConfig
 from conftest import outlier_problem
+
+from freereg_lib import config_for, pipeline
+from freereg_lib.config import FreeRegConfig
+from freereg_lib.geometry import cameras, metrics, pose
 
 
 def _eigen_umeyama(src, dst, with_scale):

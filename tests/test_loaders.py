@@ -10,12 +10,12 @@ import cv2
 import numpy as np
 import pytest
 
-from freereg_lib import cameras, projection
-from freereg_lib.datasets import pairlists, registry
-from freereg_lib.datasets.demo import load_demo_pair
-from freereg_lib.datasets.kitti import KittiDC
-from freereg_lib.datasets.scannet import ScanNet, frame_overlap
-from freereg_lib.datasets.threedmatch import FreeRegScenes, ThreeDMatch
+from freereg_lib.data.datasets import pairlists, registry
+from freereg_lib.data.datasets.demo import load_demo_pair
+from freereg_lib.data.datasets.kitti import KittiDC
+from freereg_lib.data.datasets.scannet import ScanNet, frame_overlap
+from freereg_lib.data.datasets.threedmatch import FreeRegScenes, ThreeDMatch
+from freereg_lib.geometry import cameras, projection
 
 ROOM = (np.array([-3.0, -2.5, 0.0]), np.array([3.0, 2.5, 2.8]))
 BOX = (np.array([0.8, -0.6, 0.0]), np.array([1.6, 0.4, 1.1]))
@@ -309,7 +309,7 @@ def test_open_dataset_by_name(tmp_path):
 
 
 def test_ply_reader_handles_binary_extra_properties_and_refuses_garbage(tmp_path):
-    from freereg_lib.datasets.demo import read_ply_points
+    from freereg_lib.data.datasets.demo import read_ply_points
 
     pts = np.random.default_rng(0).normal(size=(5, 3)).astype(np.float32)
     rec = np.zeros(5, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1")])

@@ -9,7 +9,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from freereg_lib.micro import models as M  # noqa: E402
+from freereg_lib.models.micro import diffusion as M  # noqa: E402
 from freereg_lib.training import train_diffusion as T  # noqa: E402
 
 
@@ -254,8 +254,8 @@ def test_restart_unet_trains_a_fresh_unet_on_the_folders_vae(tmp_path, views_arg
 # ---------------------------------------------------------------------------- backend
 
 def test_micro_backend_loads_the_committed_weights_and_the_hint_acts():
-    from freereg_lib.backends import get_backend
     from freereg_lib.config import FreeRegConfig
+    from freereg_lib.models import get_backend
 
     assert not M.missing_parts(), "the committed micro weights are incomplete"
     training = json.loads((M.WEIGHTS_DIR / "training.json").read_text())
@@ -274,8 +274,8 @@ def test_micro_backend_loads_the_committed_weights_and_the_hint_acts():
 
 
 def test_micro_backend_refuses_missing_weights_and_outdoor(tmp_path):
-    from freereg_lib.backends import MissingWeightsError, get_backend
     from freereg_lib.config import FreeRegConfig, config_for
+    from freereg_lib.models import MissingWeightsError, get_backend
 
     with pytest.raises(MissingWeightsError, match="training.retrain --export"):
         get_backend("micro", FreeRegConfig(), weights_dir=tmp_path)

@@ -1,4 +1,4 @@
-"""The micro monocular depth (freereg_lib.micro.depth / train_depth): training lowers the loss,
+"""The micro monocular depth (freereg_lib.models.micro.depth / train_depth): training lowers the loss,
 resuming is bit-identical, the committed weights load and predict metric depth without the true
 depth, and the weights folder round-trips. CI never trains (a few steps on a tiny batch only)."""
 from __future__ import annotations
@@ -11,7 +11,7 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("transformers")
 
-from freereg_lib.micro import depth as MD  # noqa: E402
+from freereg_lib.models.micro import depth as MD  # noqa: E402
 from freereg_lib.training import train_depth as T  # noqa: E402
 
 
@@ -143,15 +143,15 @@ def test_save_load_round_trip(tmp_path):
     out = est(img)
     assert out.shape == (96, 128)
     np.testing.assert_allclose(out, ref, atol=1e-4)
-    from freereg_lib.backends.base import MissingWeightsError
+    from freereg_lib.models.base import MissingWeightsError
 
     with pytest.raises(MissingWeightsError, match="train_depth"):
         MD.load(tmp_path / "nowhere")
 
 
 def test_micro_backend_depth_without_depth_gt(tmp_path):
-    from freereg_lib.backends import MissingWeightsError, get_backend
     from freereg_lib.config import FreeRegConfig
+    from freereg_lib.models import MissingWeightsError, get_backend
 
     if MD.missing_files():
         pytest.fail(f"committed micro depth weights missing: {MD.missing_files()}")
@@ -177,9 +177,9 @@ def test_micro_backend_depth_without_depth_gt(tmp_path):
 
 
 def test_micro_backend_dials_the_stub_error_for_a_controlled_sweep():
-    from freereg_lib import synthetic
-    from freereg_lib.backends import get_backend
     from freereg_lib.config import FreeRegConfig
+    from freereg_lib.data import synthetic
+    from freereg_lib.models import get_backend
 
     cfg = FreeRegConfig()
     pair = synthetic.make_pair("indoor", seed=3, image_size=(120, 160))

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from freereg_lib import synthetic
 from freereg_lib.config import FreeRegConfig
+from freereg_lib.data import synthetic
 
 SIZE = (60, 80)
 
@@ -45,7 +45,7 @@ def tiny():
     pytest.importorskip("diffusers")
     import torch
 
-    from freereg_lib.backends import get_backend
+    from freereg_lib.models import get_backend
 
     n = torch.get_num_threads()
     torch.set_num_threads(1)

@@ -10,7 +10,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from freereg_lib.micro import fcgf as MF  # noqa: E402
+from freereg_lib.models.micro import fcgf as MF  # noqa: E402
 from freereg_lib.training import train_fcgf as T  # noqa: E402
 
 
@@ -146,7 +146,7 @@ def test_training_resumes_bit_identical(tmp_path):
 
 
 def test_weights_round_trip_through_the_official_loader(tmp_path):
-    from freereg_lib.backends.fcgf import fcgf_features, load_fcgf
+    from freereg_lib.models.fcgf import fcgf_features, load_fcgf
 
     net = MF.build(5).eval()
     MF.save(net, tmp_path)
@@ -162,9 +162,10 @@ def test_weights_round_trip_through_the_official_loader(tmp_path):
 
 
 def test_micro_backend_gives_the_pipeline_its_fcgf():
-    from freereg_lib import pipeline, synthetic
-    from freereg_lib.backends import get_backend
+    from freereg_lib import pipeline
     from freereg_lib.config import FreeRegConfig
+    from freereg_lib.data import synthetic
+    from freereg_lib.models import get_backend
 
     cfg = replace(FreeRegConfig(), geometric="fcgf")
     backend = get_backend("micro", cfg, random_weights=True)
@@ -180,8 +181,8 @@ def test_micro_backend_gives_the_pipeline_its_fcgf():
 
 
 def test_recent_fcgf_features_come_from_memory_only_for_the_same_cloud_and_network(monkeypatch):
-    from freereg_lib import geometric
-    from freereg_lib.backends import fcgf as F
+    from freereg_lib.features import geometric
+    from freereg_lib.models import fcgf as F
 
     net = MF.build(1).eval()
     calls = []

@@ -14,7 +14,7 @@ from freereg_lib.training import retrain as R  # noqa: E402
 from freereg_lib.training import train_diffusion as T  # noqa: E402
 from freereg_lib.training.views import render_views  # noqa: E402
 
-WEIGHTS = Path(__file__).resolve().parents[1] / "freereg_lib" / "micro" / "weights"
+WEIGHTS = Path(__file__).resolve().parents[1] / "freereg_lib" / "models" / "micro" / "weights"
 
 
 def test_the_schedule_is_the_one_the_committed_weights_record(tmp_path):

@@ -2,7 +2,7 @@
 import shutil
 from pathlib import Path
 
-from freereg_lib.micro import models as M
+from freereg_lib.models.micro import diffusion as M
 from freereg_lib.training import card
 
 

@@ -6,7 +6,7 @@
   the tiny backend for 01, the embedded ICL sample for 02 and 04, a demo-layout pair for 04) into a temporary
   ``out_dir`` / ``figures_dir``; the tables it writes (CSV) and figures (PNG) must be there,
   and the metric columns of the tables must hold finite numbers.
-* ``python -m freereg_lib.reproduce --quick`` prints a Markdown table of FMR / IR / IN / RR.
+* ``python -m freereg_lib reproduce --quick`` prints a Markdown table of FMR / IR / IN / RR.
 
 The default-parameter runs are ``pytest --nbmake notebooks/`` (see the Makefile).
 """
@@ -184,7 +184,7 @@ def test_notebook_runs_with_other_parameters(run, tmp_path):
 
 
 def _check_benchmark_outputs(out_dir: Path, params: dict) -> None:
-    from freereg_lib import batch
+    from freereg_lib.commands import batch
 
     rows = batch.read_rows(out_dir)
     assert rows and len({r["pair"] for r in rows}) == params["n_pairs"]
@@ -214,7 +214,7 @@ def _check_benchmark_outputs(out_dir: Path, params: dict) -> None:
 def test_reproduce_quick_prints_a_metric_table():
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
     proc = subprocess.run(
-        [sys.executable, "-m", "freereg_lib.reproduce", "--quick", "--pairs", "1"],
+        [sys.executable, "-m", "freereg_lib.commands.reproduce", "--quick", "--pairs", "1"],
         cwd=ROOT, env=env, capture_output=True, text=True, timeout=600,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]

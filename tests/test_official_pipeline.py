@@ -2,11 +2,12 @@
 (shared/paper/FACTS.md, "What the official code does"), each on a small hand-made case."""
 import numpy as np
 import pytest
-
-from freereg_lib import cameras, config_for, densify, metrics, pipeline, pose, projection
-from freereg_lib.config import FreeRegConfig
-from freereg_lib.pair import Pair
 from conftest import outlier_problem
+
+from freereg_lib import config_for, pipeline
+from freereg_lib.config import FreeRegConfig
+from freereg_lib.data.pair import Pair
+from freereg_lib.geometry import cameras, densify, metrics, pose, projection
 
 K = cameras.intrinsics(20.0, 20.0, 15.5, 11.5)
 
@@ -98,7 +99,7 @@ class _FixedMono:
 
 
 def test_geometric_clouds_are_the_depth_map_and_the_edge_filtered_mono_depth(monkeypatch):
-    from freereg_lib import geometric
+    from freereg_lib.features import geometric
 
     d = _holey_depth()
     pair = _sensor_pair(d)
@@ -125,7 +126,7 @@ def test_geometric_features_see_the_depth_side_in_its_camera_frame_whatever_the_
     # The official code back-projects the depth map with extrinsic = eye(4): FCGF, which is not
     # rotation invariant, sees the depth side in the depth camera's frame, never the cloud's.
     # A feature that is the point's own coordinates tells the frames apart.
-    from freereg_lib import geometric
+    from freereg_lib.features import geometric
 
     def coordinates(cloud, cfg, camera_location=None, at=None, backend=None):
         cloud = np.asarray(cloud)

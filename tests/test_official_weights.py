@@ -10,10 +10,10 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from freereg_lib.backends import MissingWeightsError, get_backend  # noqa: E402
-from freereg_lib.backends import weights as W  # noqa: E402
-from freereg_lib.backends.diffusion import DiffusionFeatures  # noqa: E402
 from freereg_lib.config import FreeRegConfig, config_for  # noqa: E402
+from freereg_lib.models import MissingWeightsError, get_backend  # noqa: E402
+from freereg_lib.models import weights as W  # noqa: E402
+from freereg_lib.models.diffusion import DiffusionFeatures  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 UNET_NON_EMA = "unet/diffusion_pytorch_model.non_ema.safetensors"
@@ -101,7 +101,7 @@ def test_real_backend_loads_the_non_ema_unet_in_float32(weights, fake_loaders):
 
 def test_float32_is_the_default_on_cuda_too(weights, fake_loaders, monkeypatch):
     """CUDA simulated: the device is CUDA, the dtype float32 (float16 was the old default)."""
-    from freereg_lib.backends.torch_backends import resolve_device
+    from freereg_lib.models.torch_backends import resolve_device
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
@@ -158,7 +158,7 @@ def test_non_ema_variant_reads_the_non_ema_file_for_real(tmp_path):
     import transformers
     from diffusers import UNet2DConditionModel
 
-    from freereg_lib.backends.diffusion import TINY_UNET_CONFIG, load_real_diffusion
+    from freereg_lib.models.diffusion import TINY_UNET_CONFIG, load_real_diffusion
 
     sd = tmp_path / "stable-diffusion-v1-5"
     torch.manual_seed(0)
@@ -271,7 +271,7 @@ def test_fine_tuned_controlnet_file_loads_bit_for_bit(tmp_path):
     architecture of a local diffusers folder: every weight equal to the model it came from."""
     from diffusers import ControlNetModel
 
-    from freereg_lib.backends.diffusion import TINY_CONTROLNET_EXTRA, TINY_UNET_CONFIG, load_real_diffusion
+    from freereg_lib.models.diffusion import TINY_CONTROLNET_EXTRA, TINY_UNET_CONFIG, load_real_diffusion
 
     torch.manual_seed(0)
     cn_cfg = {k: v for k, v in TINY_UNET_CONFIG.items() if k not in ("out_channels", "up_block_types", "sample_size")}
@@ -305,7 +305,7 @@ def test_fine_tuned_controlnet_file_loads_bit_for_bit(tmp_path):
 
 
 def test_model_choices_key_the_feature_cache():
-    from freereg_lib.cache import feature_params
+    from freereg_lib.commands.cache import feature_params
 
     base = feature_params(FreeRegConfig())
     for change in (dict(controlnet="x/control_v11f1p_sd15_depth_ft.pth"), dict(sd_unet_variant="ema"),
@@ -325,9 +325,9 @@ def test_table1_grid_offers_the_freereg_ft_job():
 def test_check_weights_runs_the_demo_with_the_tiny_backend(tmp_path, capsys):
     """The chain runs and prints, scored with the demo's truth files; random weights cannot
     register the demo, so the command exits 3 and says why."""
-    from freereg_lib.check_weights import main
-
     from test_loaders import POSES, make_demo, render, write_depth
+
+    from freereg_lib.commands.check_weights import main
 
     demo, _, K_dpt, _ = make_demo(tmp_path / "demo", rgb_size=(120, 160), dpt_size=(60, 80))
     write_depth(demo / "just_for_eval" / "target_dpt.gtd.png", render(K_dpt, POSES[1], (60, 80)))
@@ -359,7 +359,7 @@ def test_check_weights_runs_the_demo_with_the_tiny_backend(tmp_path, capsys):
 def test_check_weights_defaults_to_fcgf_on_the_real_backend():
     import inspect
 
-    from freereg_lib import check_weights
+    from freereg_lib.commands import check_weights
 
     src = inspect.getsource(check_weights.main)
     assert 'args.geometric or ("fcgf" if args.backend == "real" else "fpfh")' in src
@@ -370,21 +370,21 @@ def test_check_weights_prints_hashes_of_real_files(weights, fake_loaders, monkey
     (the loaders are faked; the demo then fails to load and the command says so)."""
     import hashlib
 
-    from freereg_lib import check_weights
+    from freereg_lib.commands import check_weights
 
     (weights / "stable-diffusion-v1-5" / "vae").mkdir()
     (weights / "stable-diffusion-v1-5" / "vae" / "diffusion_pytorch_model.safetensors").write_bytes(b"vae")
     (weights / "zoedepth-nyu").mkdir()
     (weights / "zoedepth-nyu" / "config.json").write_text("{}")
     (weights / "zoedepth-nyu" / "model.safetensors").write_bytes(b"zoe")
-    monkeypatch.setattr("freereg_lib.backends.zoedepth.load_real_zoedepth", lambda path, device: object())
+    monkeypatch.setattr("freereg_lib.models.zoedepth.load_real_zoedepth", lambda path, device: object())
     # FCGF is checked too (the paper's geometric features, the default on the real backend).
     rc = check_weights.main(["--demo", str(tmp_path / "no_demo"), "--weights-dir", str(weights), "--device", "cpu"])
     out = capsys.readouterr()
     assert rc == 1 and "FCGF checkpoint not found" in out.err and "2019-08-19_06-17-41.pth" in out.err
     (weights / "fcgf").mkdir()
     (weights / "fcgf" / "2019-08-19_06-17-41.pth").write_bytes(b"fcgf")
-    monkeypatch.setattr("freereg_lib.backends.fcgf.load_fcgf", lambda path, *a, **k: object())
+    monkeypatch.setattr("freereg_lib.models.fcgf.load_fcgf", lambda path, *a, **k: object())
     rc = check_weights.main(["--demo", str(tmp_path / "no_demo"), "--weights-dir", str(weights), "--device", "cpu"])
     out = capsys.readouterr()
     assert rc == 1 and "FAILED to load the demo pair" in out.err

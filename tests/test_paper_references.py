@@ -205,7 +205,7 @@ def test_the_repository_cites_the_paper_right():
 
 def test_the_scan_reads_the_notebooks_and_the_library():
     wheres = {w.split(" cell ")[0] for w, _ in DOCS}
-    assert {"README.md", "docs/micro_models.md", "freereg_lib/plots.py", "notebooks/04_benchmark.ipynb"} <= wheres
+    assert {"README.md", "docs/micro_models.md", "freereg_lib/report/plots.py", "notebooks/04_benchmark.ipynb"} <= wheres
     refs = sum(len(FIG_RE.findall(t)) + len(TABLE_RE.findall(t)) for _, t in DOCS)
     assert refs > 30, f"only {refs} figure / table references found: is the scan reading the files?"
 

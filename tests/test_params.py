@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from freereg_lib import params as P
+from freereg_lib.report import params as P
 
 nbformat = pytest.importorskip("nbformat")
 papermill = pytest.importorskip("papermill")

@@ -3,10 +3,10 @@ import math
 
 import numpy as np
 import pytest
-
-from freereg_lib import cameras, keypoints, metrics, pose
-from freereg_lib.datasets.icl import ICLSample
 from conftest import random_pose
+
+from freereg_lib.data.datasets.icl import ICLSample
+from freereg_lib.geometry import cameras, keypoints, metrics, pose
 
 
 def _corrupt(pts_pc: np.ndarray, rng, fraction: float = 0.5) -> np.ndarray:
@@ -40,7 +40,7 @@ def test_solvers_recover_pose_on_icl_with_half_outliers(rng):
 
 
 def test_solvers_recover_pose_on_synthetic_with_half_outliers(rng):
-    from freereg_lib import synthetic
+    from freereg_lib.data import synthetic
 
     for seed in (0, 1):
         _check_recovery(synthetic.make_pair("indoor", seed=seed), rng)
@@ -129,7 +129,7 @@ def test_aggregate_hand_computed():
 
 def test_icl_warp_pins_pose_convention():
     """Frame j's depth, moved into frame i with the true pose, matches frame i's depth."""
-    from freereg_lib import projection
+    from freereg_lib.geometry import projection
 
     icl = ICLSample()
     for i, j in [(0, 40), (100, 60), (200, 210)]:
@@ -142,7 +142,7 @@ def test_icl_warp_pins_pose_convention():
 
 def test_icl_wrong_convention_would_fail():
     """The inverse pose must not pass the same check: the test above can fail."""
-    from freereg_lib import projection
+    from freereg_lib.geometry import projection
 
     pair = ICLSample().pair(0, 40)
     warped, _ = projection.project_to_depth(pair.points, pair.K_image, cameras.invert(pair.T_cam_pc), pair.image_size)
@@ -177,8 +177,9 @@ def test_summarize_of_no_rows_keeps_the_columns():
 
 
 def test_rows_frame_matches_the_rows_pipeline_writes():
-    from freereg_lib import config_for, pipeline, synthetic
-    from freereg_lib.backends import get_backend
+    from freereg_lib import config_for, pipeline
+    from freereg_lib.data import synthetic
+    from freereg_lib.models import get_backend
 
     cfg = config_for("synthetic_indoor", ransac_iters=500)
     rows = pipeline.run_pair(synthetic.make_pair("indoor", seed=4), get_backend("stub", cfg), cfg, [("FreeReg", "pnp")])
@@ -280,9 +281,10 @@ def test_depth_side_is_scored_with_the_depth_frame_truth():
     map is the truth (ScanNet / KITTI without a truth file)."""
     import dataclasses
 
-    from freereg_lib import pipeline, synthetic
-    from freereg_lib.backends import get_backend
+    from freereg_lib import pipeline
     from freereg_lib.config import FreeRegConfig
+    from freereg_lib.data import synthetic
+    from freereg_lib.models import get_backend
 
     cfg = FreeRegConfig().override(keypoint_grid=(12, 16))
     pair = synthetic.make_pair("indoor", seed=4)

@@ -14,7 +14,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from freereg_lib import cameras, keypoints, metrics, pose, synthetic
+from freereg_lib.data import synthetic
+from freereg_lib.geometry import cameras, keypoints, metrics, pose
 
 FAST = settings(max_examples=12, deadline=None, derandomize=True, database=None,
                 suppress_health_check=[HealthCheck.too_slow])

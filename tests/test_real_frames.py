@@ -12,8 +12,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from freereg_lib import config_for, pipeline, real_frames
-from freereg_lib.datasets.icl import ICLSample
+from freereg_lib import config_for, pipeline
+from freereg_lib.commands import real_frames
+from freereg_lib.data.datasets.icl import ICLSample
 
 FLOORS = {("true", "kabsch"): 7 / 8, ("true", "pnp"): 7 / 8, ("stub", "kabsch"): 7 / 8, ("stub", "pnp"): 6 / 8}
 

@@ -1,4 +1,4 @@
-"""The front door for one's own data (issue 18): ``freereg register`` and ``freereg_lib.register``.
+"""The front door for one's own data (issue 18): ``freereg register`` and ``freereg_lib.pipeline.register``.
 
 * the command on the official demo layout the tests write and on the embedded ICL sample (tiny
   backend: random weights, the numbers mean nothing): outputs exist, the pose files parse and are
@@ -20,11 +20,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from freereg_lib import cameras, cli, synthetic
-from freereg_lib import register as R
-from freereg_lib.backends import get_backend
+from freereg_lib.commands import cli
 from freereg_lib.config import config_for
-from freereg_lib.datasets.icl import ICL_ROOT, ICLSample
+from freereg_lib.data import synthetic
+from freereg_lib.data.datasets.icl import ICL_ROOT, ICLSample
+from freereg_lib.geometry import cameras
+from freereg_lib.models import get_backend
+from freereg_lib.pipeline import register as R
+from freereg_lib.report import pair_files as PF
 
 ROOT = Path(__file__).resolve().parent.parent
 FAST = ["--ransac-iters", "3000"]
@@ -92,9 +95,9 @@ def test_a_synthetic_cloud_without_its_sensor_pose_registers_through_virtual_cam
 
 
 def test_the_command_picks_a_virtual_camera_for_files_without_a_sensor_pose(tmp_path, capsys):
-    pair = R.downscale_pair(synthetic.make_pair("indoor", seed=0, image_size=(240, 320)), 0.5)
+    pair = PF.downscale_pair(synthetic.make_pair("indoor", seed=0, image_size=(240, 320)), 0.5)
     T_world = cameras.make_pose(cameras.rotation_about([0, 0, 1], 0.7), [3.0, -2.0, 0.5])
-    paths = R.write_user_files(pair, tmp_path / "in", T_world)
+    paths = PF.write_user_files(pair, tmp_path / "in", T_world)
     rc, out, err = _run(["register", str(paths["image"]), str(paths["cloud"]), "--intrinsics", str(paths["intrinsics"]),
                          "--image-depth", str(paths["image_depth"]), "--gt-T-pc-cam", str(paths["gt_T_pc_cam"]),
                          "--backend", "stub", "--views", "2", "--up", "z", "--out", str(tmp_path / "out"), *FAST], capsys)
@@ -110,8 +113,8 @@ def test_the_command_picks_a_virtual_camera_for_files_without_a_sensor_pose(tmp_
 # Bad inputs: one line each.
 
 def _bad_inputs(tmp_path):
-    pair = R.downscale_pair(ICLSample().pair(10, 40), 0.25)
-    paths = R.write_user_files(pair, tmp_path / "in")
+    pair = PF.downscale_pair(ICLSample().pair(10, 40), 0.25)
+    paths = PF.write_user_files(pair, tmp_path / "in")
     img, cloud = str(paths["image"]), str(paths["cloud"])
     K = [str(v) for v in (pair.K_image[0, 0], pair.K_image[1, 1], pair.K_image[0, 2], pair.K_image[1, 2])]
     np.save(tmp_path / "mm.npy", pair.points * 1000)
@@ -157,7 +160,7 @@ def test_the_console_script_is_declared():
     tomllib = pytest.importorskip("tomllib")  # Python 3.11+
 
     scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
-    assert scripts["freereg"] == "freereg_lib.cli:main" and callable(cli.main)
+    assert scripts["freereg"] == "freereg_lib.commands.cli:main" and callable(cli.main)
 
 
 def test_virtual_cameras_look_horizontally_with_image_y_down():

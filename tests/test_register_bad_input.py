@@ -20,12 +20,15 @@ import cv2
 import numpy as np
 import pytest
 
-from freereg_lib import cameras, cli
-from freereg_lib import register as R
-from freereg_lib.backends import get_backend
+from freereg_lib.commands import cli
 from freereg_lib.config import config_for
-from freereg_lib.datasets.common import read_points, read_rgb
-from freereg_lib.datasets.icl import ICLSample
+from freereg_lib.data.datasets.common import read_points, read_rgb
+from freereg_lib.data.datasets.icl import ICLSample
+from freereg_lib.geometry import cameras
+from freereg_lib.models import get_backend
+from freereg_lib.commands import user_inputs as UI
+from freereg_lib.pipeline import register as R
+from freereg_lib.report import pair_files as PF
 
 ROOT = Path(__file__).resolve().parent.parent
 FAST = ["--ransac-iters", "2000", "--backend", "stub"]
@@ -37,9 +40,9 @@ def files(tmp_path_factory):
     the cloud in a frame turned and moved away from the camera's (so an inverted pose shows none
     of it)."""
     tmp = tmp_path_factory.mktemp("bad_input")
-    pair = R.downscale_pair(ICLSample().pair(10, 40), 0.25)
+    pair = PF.downscale_pair(ICLSample().pair(10, 40), 0.25)
     T_world = cameras.make_pose(cameras.rotation_about([0, 0, 1], 0.7), [3.0, -2.0, 0.5])
-    paths = R.write_user_files(pair, tmp / "in", T_world)
+    paths = PF.write_user_files(pair, tmp / "in", T_world)
     K = pair.K_image
     paths["K"] = [f"{v:.6f}" for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2])]
     paths["pair"], paths["T_world"], paths["tmp"] = pair, T_world, tmp
@@ -114,8 +117,8 @@ def test_depth_size_given_as_h_w_is_refused(files, capsys, tmp_path):
 
 def test_a_depth_size_of_another_aspect_needs_its_intrinsics(files):
     with pytest.raises(R.InputError, match="give --depth-K"):
-        R.load_inputs(files["image"], files["cloud"], [float(v) for v in files["K"]], depth_size=(100, 100))
-    pair = R.load_inputs(files["image"], files["cloud"], [float(v) for v in files["K"]], depth_size=(60, 80))
+        UI.load_inputs(files["image"], files["cloud"], [float(v) for v in files["K"]], depth_size=(100, 100))
+    pair = UI.load_inputs(files["image"], files["cloud"], [float(v) for v in files["K"]], depth_size=(60, 80))
     assert pair.depth_size == (60, 80)  # half the image, same aspect: accepted
 
 
@@ -138,7 +141,7 @@ def test_an_exif_rotation_is_applied_to_neither_view(files, capsys):
     img = read_rgb(photo)
     assert img.shape == pair.image.shape  # as stored: 120 x 160, not turned to 160 x 120
     assert np.abs(img.astype(int) - pair.image.astype(int)).mean() < 8  # the same pixels (JPEG)
-    loaded = R.load_inputs(photo, files["cloud"], [float(v) for v in files["K"]],
+    loaded = UI.load_inputs(photo, files["cloud"], [float(v) for v in files["K"]],
                            image_depth=files["image_depth"])  # the depth map, as stored, fits it
     assert loaded.image.shape[:2] == loaded.depth_gt.shape
     note = " ".join(loaded.meta["notes"])
@@ -176,7 +179,7 @@ def test_depth_in_other_units_is_caught_against_the_cloud(files, factor, fits, c
 
 
 def test_depth_in_the_right_units_passes_the_check(files):
-    pair = R.load_inputs(files["image"], files["cloud"], [float(v) for v in files["K"]],
+    pair = UI.load_inputs(files["image"], files["cloud"], [float(v) for v in files["K"]],
                          gt_T_cam_pc=cameras.invert(np.loadtxt(files["gt_T_pc_cam"])), image_depth=files["image_depth"])
     assert pair.depth_gt is not None
 
@@ -210,7 +213,7 @@ def test_an_inverted_depth_pose_is_refused(files, capsys, tmp_path):
     # its inverse, T_sensor_pc, shows none of the cloud.
     np.savetxt(tmp_path / "right.txt", files["T_world"])
     np.savetxt(tmp_path / "inverted.txt", cameras.invert(files["T_world"]))
-    pair = R.load_inputs(files["image"], files["cloud"], [float(v) for v in files["K"]],
+    pair = UI.load_inputs(files["image"], files["cloud"], [float(v) for v in files["K"]],
                          depth_pose=np.loadtxt(tmp_path / "right.txt"))
     assert pair.meta["depth_camera"]
     rc, out, err = _run([*_base(files), "--depth-pose", str(tmp_path / "inverted.txt"), *FAST,
@@ -229,7 +232,7 @@ def test_a_cloud_far_from_its_origin_gets_the_pose_it_gets_near_it():
     # solver exactly what the near cloud moved by the same whole metres does, and the pose comes
     # back in the far coordinates. Before, PnP ran on coordinates of 5e6 m (on this pair: 8
     # inliers and RE 29 deg, against 33 inliers and 3.9 deg near the origin).
-    from freereg_lib import inputs_check as IC
+    from freereg_lib.commands import inputs_check as IC
 
     pair = ICLSample().pair(60, 70)
     pair = dataclasses.replace(pair, points=np.round(pair.points * 2.0**20) / 2.0**20)
@@ -238,11 +241,11 @@ def test_a_cloud_far_from_its_origin_gets_the_pose_it_gets_near_it():
     T_off = cameras.make_pose(np.eye(3), offset)
     far = dataclasses.replace(pair, points=pair.points + offset, T_pc_sensor=T_off @ pair.T_pc_sensor,
                               T_cam_pc=pair.T_cam_pc @ cameras.invert(T_off))
-    c = IC.recentre_offset(far.points)
-    assert c is not None and IC.recentre_offset(pair.points) is None  # a cloud near its origin is left alone
+    c = R.recentre_offset(far.points)
+    assert c is not None and R.recentre_offset(pair.points) is None  # a cloud near its origin is left alone
     c_near = c - offset  # the same whole metres, seen from the near cloud
-    near = dataclasses.replace(pair, points=pair.points - c_near, T_pc_sensor=IC.shift_frame(pair.T_pc_sensor, c_near),
-                               T_cam_pc=IC.shift_pose(pair.T_cam_pc, c_near))
+    near = dataclasses.replace(pair, points=pair.points - c_near, T_pc_sensor=R.shift_frame(pair.T_pc_sensor, c_near),
+                               T_cam_pc=R.shift_pose(pair.T_cam_pc, c_near))
     cfg = config_for("demo", ransac_iters=3000)
     backend = get_backend("stub", cfg, mono_mae=1e-9)
     lines: list[str] = []

@@ -4,16 +4,17 @@ from __future__ import annotations
 
 import pytest
 
-from freereg_lib import cli
-from freereg_lib import register as R
-from freereg_lib.datasets.icl import ICLSample
+from freereg_lib.commands import cli
+from freereg_lib.data.datasets.icl import ICLSample
+from freereg_lib.pipeline import register as R
+from freereg_lib.report import pair_files as PF
 
 
 @pytest.fixture(scope="module")
 def files(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("cli")
-    pair = R.downscale_pair(ICLSample().pair(10, 40), 0.25)
-    paths = R.write_user_files(pair, tmp / "in")
+    pair = PF.downscale_pair(ICLSample().pair(10, 40), 0.25)
+    paths = PF.write_user_files(pair, tmp / "in")
     K = pair.K_image
     paths["K"] = [f"{v:.6f}" for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2])]
     return paths

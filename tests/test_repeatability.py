@@ -7,8 +7,9 @@ import textwrap
 
 _RUN = textwrap.dedent("""
     import sys
-    from freereg_lib import config_for, pipeline, sources
-    from freereg_lib.backends import get_backend
+    from freereg_lib import config_for, pipeline
+    from freereg_lib.data import sources
+    from freereg_lib.models import get_backend
 
     scoring, out = sys.argv[1], sys.argv[2]
     rows = []

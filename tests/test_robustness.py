@@ -21,12 +21,14 @@ import numpy as np
 import pytest
 import yaml
 
-from freereg_lib import cameras, config_for, metrics, pipeline, projection, synthetic
-from freereg_lib.backends import MissingWeightsError, get_backend
-from freereg_lib.datasets import common
-from freereg_lib.datasets.icl import ICL_ROOT, ICLSample
-from freereg_lib.datasets.pairlists import PairEntry, PairSource
-from freereg_lib.pair import Pair, UnreadablePair
+from freereg_lib import config_for, pipeline
+from freereg_lib.data import synthetic
+from freereg_lib.data.datasets import common
+from freereg_lib.data.datasets.icl import ICL_ROOT, ICLSample
+from freereg_lib.data.datasets.pairlists import PairEntry, PairSource
+from freereg_lib.data.pair import Pair, UnreadablePair
+from freereg_lib.geometry import cameras, metrics, projection
+from freereg_lib.models import MissingWeightsError, get_backend
 
 ROOT = Path(__file__).resolve().parent.parent
 SIZE = (120, 160)
@@ -430,9 +432,9 @@ def test_same_seed_gives_bit_identical_pairs_and_identical_rows(pair):
 # says what finished.
 
 def test_batch_command_with_a_failing_notebook(tmp_path, capsys):
-    """``python -m freereg_lib.batch run`` exits with ``main()``'s status (in-process here:
+    """``python -m freereg_lib batch run`` exits with ``main()``'s status (in-process here:
     a subprocess would add seconds of start-up for nothing)."""
-    from freereg_lib import batch
+    from freereg_lib.commands import batch
 
     flag = tmp_path / "fail.txt"
     flag.write_text("seed=1,scale=1.0\n")

@@ -2,7 +2,7 @@
 
 A short run: notebook 00 executed with papermill (stub backend, one pair) into a run folder, and
 the other notebooks copied there unexecuted (their headings are what the index links to; the test
-stays under a minute). From it ``freereg_lib.site.build_site`` writes the site, and:
+stays under a minute). From it ``freereg_lib.commands.site.build_site`` writes the site, and:
 
 * every link and image of the index resolves on disk, each ``#anchor`` to an id of its page;
 * every page (the index, the notebooks, the docs pages, the API reference) has previous / next
@@ -35,7 +35,7 @@ nbformat = pytest.importorskip("nbformat")
 papermill = pytest.importorskip("papermill")
 pytest.importorskip("nbconvert")
 
-from freereg_lib import site as S  # noqa: E402
+from freereg_lib.commands import site as S  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 NOTEBOOKS = ROOT / "notebooks"
@@ -154,7 +154,7 @@ def test_every_page_has_navigation_a_contents_and_its_backend(site, run):
     assert pages[:len(notebooks) + 1] == [site / "index.html"] + notebooks, [p.name for p in pages]
     rest = {p.name for p in pages[len(notebooks) + 1:]}
     assert {f"{d.stem}.html" for d in (ROOT / "docs").glob("*.md")} <= rest, rest
-    assert {"api.html", "api_freereg_lib_pose.html", "benchmarks.html"} <= rest, rest
+    assert {"api.html", "api_freereg_lib_geometry_pose.html", "benchmarks.html"} <= rest, rest
     assert set(pages) == set(site.glob("*.html")), "a page outside the previous / next chain"
     for k, page in enumerate(pages):
         text = page.read_text(encoding="utf-8")
@@ -165,7 +165,7 @@ def test_every_page_has_navigation_a_contents_and_its_backend(site, run):
             assert f'href="{pages[k + 1].name}"' in text and 'rel="next"' in text
         assert re.search(r'class="freereg-backend">Backend: <strong>\w', text), f"{page.name}: no backend named"
         assert not _check_refs(page, site), _check_refs(page, site)
-        if 0 < k <= len(notebooks) or page.name in ("micro_models.html", "real_data.html", "fidelity.html", "api_freereg_lib_pose.html"):
+        if 0 < k <= len(notebooks) or page.name in ("micro_models.html", "real_data.html", "fidelity.html", "api_freereg_lib_geometry_pose.html"):
             toc = re.search(r'<nav aria-label="contents of this page" class="freereg-toc">(.*?)</nav>', text, re.S)
             assert toc, f"{page.name}: no table of contents"
             anchors = re.findall(r'href="#([^"]+)"', toc.group(1))
@@ -178,7 +178,7 @@ def test_every_page_has_navigation_a_contents_and_its_backend(site, run):
 
 
 def test_the_docs_pages_and_the_api_reference(site):
-    from freereg_lib import site_docs as D
+    from freereg_lib.commands import site_docs as D
 
     assert not D.WARNINGS, "docs links that lead nowhere:\n" + "\n".join(D.WARNINGS)
     index = (site / "index.html").read_text(encoding="utf-8")
@@ -192,20 +192,20 @@ def test_the_docs_pages_and_the_api_reference(site):
     assert "When something goes wrong" in troubles and troubles.count("<tr>") > 50
     # The model card's figure is copied with the page; a repository file without a page is text.
     card = (site / "model_card_diffusion.html").read_text(encoding="utf-8")
-    assert 'src="assets/freereg_lib/micro/weights/loss_curves.png"' in card
-    assert (site / "assets/freereg_lib/micro/weights/loss_curves.png").is_file()
+    assert 'src="assets/freereg_lib/models/micro/weights/loss_curves.png"' in card
+    assert (site / "assets/freereg_lib/models/micro/weights/loss_curves.png").is_file()
     # The API reference: every module, its public functions with their signatures.
     api = (site / "api.html").read_text(encoding="utf-8")
     for name, _ in D._modules(ROOT / "freereg_lib"):
         assert f'href="api_{name.replace(".", "_")}.html"' in api, name
-    pose = (site / "api_freereg_lib_pose.html").read_text(encoding="utf-8")
+    pose = (site / "api_freereg_lib_geometry_pose.html").read_text(encoding="utf-8")
     assert 'Backend: <strong>any</strong>' in pose
     assert re.search(r'<h2 id="kabsch_ransac"', pose) and "def kabsch_ransac(" in html_unescape(re.sub(r"<[^>]+>", "", pose))
     assert "Kabsch" in pose  # its docstring
 
 
 def test_a_docs_link_to_a_missing_heading_is_reported(tmp_path):
-    from freereg_lib import site_docs as D
+    from freereg_lib.commands import site_docs as D
 
     docs = tmp_path / "docs"
     docs.mkdir()
@@ -268,7 +268,7 @@ def test_in_chromium_no_image_is_broken_and_a_screenshot_is_saved(site, run):
     broken_page = run / "broken_probe.html"
     broken_page.write_text('<html><body><img src="no_such_figure.png"></body></html>')
     opened = ["index.html", f"{EXECUTED}.html", "micro_models.html", "model_card_diffusion.html",
-              "api_freereg_lib_pose.html"]
+              "api_freereg_lib_geometry_pose.html"]
     result = _browser_check([site / name for name in opened] + [broken_page], run)
     assert result["broken_probe.html"] == {"images": 1, "broken": ["no_such_figure.png"]}, result  # the check sees
     for name in opened:
@@ -289,7 +289,7 @@ def test_make_book_command_writes_the_site(tmp_path):
     small = tmp_path / "run"  # one (unexecuted) notebook keeps the command's test short
     small.mkdir()
     shutil.copy(NOTEBOOKS / "05_your_data.ipynb", small)
-    proc = subprocess.run([sys.executable, "-m", "freereg_lib.site", str(small), "--out", str(tmp_path / "book")],
+    proc = subprocess.run([sys.executable, "-m", "freereg_lib.commands.site", str(small), "--out", str(tmp_path / "book")],
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert (tmp_path / "book" / "index.html").is_file() and (tmp_path / "book" / "05_your_data.html").is_file()
@@ -297,7 +297,7 @@ def test_make_book_command_writes_the_site(tmp_path):
     assert "Site:" in proc.stdout
     empty = tmp_path / "empty"
     empty.mkdir()
-    proc = subprocess.run([sys.executable, "-m", "freereg_lib.site", str(empty)], capture_output=True, text=True,
+    proc = subprocess.run([sys.executable, "-m", "freereg_lib.commands.site", str(empty)], capture_output=True, text=True,
                           timeout=120)
     assert proc.returncode == 1 and "no executed notebook" in proc.stderr and "Traceback" not in proc.stderr
 
@@ -341,8 +341,8 @@ def test_the_readme_is_a_front_door_whose_links_lead_somewhere():
 
 
 def test_compact_png_fits_the_limits(tmp_path):
-    from PIL import Image
     import numpy as np
+    from PIL import Image
 
     rng = np.random.default_rng(0)
     Image.fromarray(rng.integers(0, 255, (900, 2400, 3), dtype=np.uint8)).save(tmp_path / "noise.png")

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import pytest
 
-from freereg_lib import sources
-from freereg_lib.datasets import pairlists
-from freereg_lib.datasets.icl import ICLSample
+from freereg_lib.data import sources
+from freereg_lib.data.datasets import pairlists
+from freereg_lib.data.datasets.icl import ICLSample
 
 
 def test_spread_takes_first_last_and_evenly_between():
@@ -48,9 +48,7 @@ class _Listed(pairlists.PairSource):
 
 
 def test_on_disk_n_pairs_are_spread_and_unreadable_ones_recorded(monkeypatch):
-    from freereg_lib import datasets
-
-    monkeypatch.setattr(datasets, "open_dataset", lambda name, root, **kw: _Listed(10))
+    monkeypatch.setattr(sources, "open_dataset", lambda name, root, **kw: _Listed(10))
     got = list(sources.iter_pairs("3dmatch", 3, root="anywhere"))
     assert [p.name for p in got] == ["3dmatch/scene/0-1", "3dmatch/scene/4-5", "3dmatch/scene/9-10"]
     assert all(type(p).__name__ == "UnreadablePair" for p in got)

@@ -7,9 +7,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from freereg_lib.cameras import invert, is_rigid, project, transform
-from freereg_lib.pair import Pair
-from freereg_lib.synthetic import (
+from freereg_lib.data.pair import Pair
+from freereg_lib.data.synthetic import (
     CLASS_NAMES,
     DEFAULT_IMAGE_SIZE,
     LIDAR_ELEVATIONS_DEG,
@@ -18,6 +17,7 @@ from freereg_lib.synthetic import (
     make_pairs,
     overlap_ratio,
 )
+from freereg_lib.geometry.cameras import invert, is_rigid, project, transform
 
 KINDS = ("indoor", "outdoor")
 # Small images keep the tests that only need the machinery fast.

@@ -1,7 +1,7 @@
 """The verdict of ``freereg register`` (REGISTERED / FAILED without ground truth), measured on
 real frames (issue 38): on 61 ICL pairs and the official demo (244 poses: the stub's and the
 true depth, Kabsch and PnP; ``tests/fixtures/verdict_icl_rows.csv``, written by
-``python -m freereg_lib.verdict_measure``) no pose within (5 deg, 0.1 m) of the truth is called
+``python -m freereg_lib.commands.verdict_measure``) no pose within (5 deg, 0.1 m) of the truth is called
 FAILED, and the false positives stay those docs/your_data.md reports."""
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from freereg_lib import register as R
-from freereg_lib import verdict_measure as V
+from freereg_lib.commands import verdict_measure as V
+from freereg_lib.pipeline import register as R
 
 ROWS = Path(__file__).resolve().parent / "fixtures" / "verdict_icl_rows.csv"
 

@@ -1,6 +1,6 @@
 """Course assignments from the notebooks: student versions, a student distribution and a grader.
 
-``python -m freereg_lib.assignments`` is the command (``make``, ``dist``, ``grade``, ``list``);
+``python -m freereg_lib.teaching.assignments`` is the command (``make``, ``dist``, ``grade``, ``list``);
 ``assignments/README.md`` is the teacher's guide. The modules, imported one way only:
 
 * :mod:`.exercises` - the registry: each exercise, its graded cases (inputs drawn from the

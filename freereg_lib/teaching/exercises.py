@@ -84,7 +84,7 @@ def _assert_close(got: Any, want: Any, what: str, atol: float = 1e-9, rtol: floa
 
 
 def _random_pose(rng: np.random.Generator, angle: float | None = None, t_scale: float = 1.0) -> np.ndarray:
-    from .. import cameras
+    from freereg_lib.geometry import cameras
 
     angle = rng.uniform(-np.pi, np.pi) if angle is None else angle
     return cameras.make_pose(cameras.rotation_about(rng.normal(size=3), angle), t_scale * rng.normal(size=3))
@@ -93,7 +93,7 @@ def _random_pose(rng: np.random.Generator, angle: float | None = None, t_scale: 
 @functools.lru_cache(maxsize=2)
 def _room_pair(seed: int):
     """A small synthetic indoor pair (60 x 80 pixels; well under a second)."""
-    from .. import synthetic
+    from freereg_lib.data import synthetic
 
     return synthetic.make_pair("indoor", seed=seed, image_size=(60, 80))
 
@@ -102,7 +102,7 @@ def _room_pair(seed: int):
 # Render a point cloud into a depth map (00).
 
 def _ref_depth(points, K, T, size):
-    from .. import projection
+    from freereg_lib.geometry import projection
 
     return projection.project_to_depth(points, K, T, size)[0]
 
@@ -111,12 +111,12 @@ _exercise(
     "student_project_to_depth", "00_preliminaries", "Render a point cloud into a depth map",
     "rigid transforms, the pinhole model, pixel rounding and z-buffering (the nearest point wins); "
     "this is how FreeReg turns the cloud into a depth image for ControlNet",
-    _ref_depth, lambda got, want: _assert_close(got, want, "depth map"), ("projection.project_to_depth",))
+    _ref_depth, lambda got, want: _assert_close(got, want, "depth map"), ("geometry.projection.project_to_depth",))
 
 
 @_case("student_project_to_depth", 3, "the synthetic room seen by its depth camera")
 def _(d: Draw):
-    from .. import cameras
+    from freereg_lib.geometry import cameras
 
     p = d.room()
     return [(p.points, p.K_depth, cameras.invert(p.T_pc_sensor), p.depth_size)]
@@ -124,7 +124,7 @@ def _(d: Draw):
 
 @_case("student_project_to_depth", 3, "a random cloud from a random pose, non-square image")
 def _(d: Draw):
-    from .. import cameras
+    from freereg_lib.geometry import cameras
 
     T = _random_pose(d.rng, t_scale=0.5)
     cam = np.c_[d.rng.uniform(-3, 3, (800, 2)), d.rng.uniform(-1, 6, 800)]  # some behind, some outside
@@ -133,7 +133,7 @@ def _(d: Draw):
 
 @_case("student_project_to_depth", 2, "the nearest point wins on a shared pixel, in any order")
 def _(d: Draw):
-    from .. import cameras
+    from freereg_lib.geometry import cameras
 
     rays = np.c_[d.rng.uniform(-0.3, 0.3, (40, 2)), np.ones(40)]
     points = np.concatenate([rays * z for z in (3.0, 1.5, 2.5, 0.8, 4.0)])  # five depths per ray
@@ -142,7 +142,7 @@ def _(d: Draw):
 
 @_case("student_project_to_depth", 2, "points behind the sensor or off the image leave zeros")
 def _(d: Draw):
-    from .. import cameras
+    from freereg_lib.geometry import cameras
 
     K = cameras.intrinsics(10.0, 10.0, 2.0, 2.0)
     toy = np.array([[0.0, 0.0, 2.0], [0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [0.1, 0.0, 1.0],
@@ -159,7 +159,7 @@ def _ref_ir(*args) -> float:
     evaluable (``few="zero"`` where the library also offers the official tool's convention)."""
     import inspect
 
-    from .. import metrics
+    from freereg_lib.geometry import metrics
 
     correct, evaluable = metrics.correct_matches(*args)
     if "few" in inspect.signature(metrics.inlier_stats).parameters:
@@ -178,12 +178,12 @@ _exercise(
     "student_inlier_ratio", "00_preliminaries", "The inlier ratio (IR) of one pair",
     "how a pixel-to-point match is judged correct: true depth, back-projection, the inverse pose, "
     "the tau_c threshold, and which matches can be evaluated at all",
-    _ref_ir, _check_ir, ("metrics.correct_matches", "metrics.inlier_stats"))
+    _ref_ir, _check_ir, ("geometry.metrics.correct_matches", "geometry.metrics.inlier_stats"))
 
 
 def _room_matches(d: Draw, n: int, noise: float = 0.02):
     """Pixels of the room pair and their true cloud points (plus noise), as matches."""
-    from .. import cameras
+    from freereg_lib.geometry import cameras
 
     p, rng = d.room(), d.rng
     H, W = p.depth_gt.shape
@@ -244,7 +244,7 @@ def _(d: Draw):
 # Kabsch (02).
 
 def _ref_kabsch(src, dst) -> np.ndarray:
-    from .. import pose
+    from freereg_lib.geometry import pose
 
     return pose._umeyama(np.asarray(src, float)[None], np.asarray(dst, float)[None], False)[0]
 
@@ -260,12 +260,12 @@ _exercise(
     "student_kabsch", "02_geometric_features", "The Kabsch algorithm",
     "the closed-form least-squares rigid fit of two matched point sets (centring, SVD of the "
     "cross-covariance, the reflection fix); the solver inside FreeReg's Kabsch-RANSAC",
-    _ref_kabsch, _check_pose, ("pose.kabsch_ransac", "pose._umeyama"))
+    _ref_kabsch, _check_pose, ("geometry.pose.kabsch_ransac", "geometry.pose._umeyama"))
 
 
 @_case("student_kabsch", 3, "a known pose on random points")
 def _(d: Draw):
-    from .. import cameras
+    from freereg_lib.geometry import cameras
 
     src = d.rng.normal(size=(60, 3))
     return [(src, cameras.transform(_random_pose(d.rng), src))]
@@ -273,7 +273,7 @@ def _(d: Draw):
 
 @_case("student_kabsch", 3, "planar point sets (need the reflection fix)")
 def _(d: Draw):
-    from .. import cameras
+    from freereg_lib.geometry import cameras
 
     calls = []  # without the fix, about half of them come out reflected: six make a miss unlikely
     for _ in range(6):
@@ -284,7 +284,7 @@ def _(d: Draw):
 
 @_case("student_kabsch", 2, "noisy matches: the least-squares fit")
 def _(d: Draw):
-    from .. import cameras
+    from freereg_lib.geometry import cameras
 
     src = d.rng.normal(size=(80, 3)) * [2.0, 1.0, 0.5]
     return [(src, cameras.transform(_random_pose(d.rng), src) + d.rng.normal(scale=0.05, size=(80, 3)))]
@@ -292,7 +292,7 @@ def _(d: Draw):
 
 @_case("student_kabsch", 2, "a near half-turn, a far translation, four points")
 def _(d: Draw):
-    from .. import cameras
+    from freereg_lib.geometry import cameras
 
     T = cameras.make_pose(cameras.rotation_about(d.rng.normal(size=3), 3.1), [120.0, -45.0, 30.0])
     src = d.rng.normal(size=(4, 3))
@@ -303,7 +303,7 @@ def _(d: Draw):
 # Mutual nearest neighbours (03).
 
 def _ref_mnn(fa, fb):
-    from .. import matching
+    from freereg_lib.features import matching
 
     return matching.mutual_nn(fa, fb)
 
@@ -322,7 +322,7 @@ _exercise(
     "student_mutual_nn", "03_fusion", "Mutual nearest neighbours",
     "descriptor matching: all pairwise distances with one matrix product, nearest neighbours "
     "both ways, and the mutual check that turns features into pixel-to-point matches",
-    _ref_mnn, _check_mnn, ("matching.mutual_nn",))
+    _ref_mnn, _check_mnn, ("features.matching.mutual_nn",))
 
 
 @_case("student_mutual_nn", 4, "random descriptors, 200 x 16 against 150 x 16")
@@ -345,7 +345,7 @@ def _(d: Draw):
 # The fusion (03).
 
 def _ref_fuse(f_d, f_g, w):
-    from .. import features
+    from freereg_lib import features
 
     return features.fuse(f_d, f_g, w)
 
@@ -355,7 +355,7 @@ _exercise(
     "FreeReg's feature fusion: per-row L2 normalisation, the weight w between the two modalities, "
     "and why the fused width stays the same at w = 0 and w = 1",
     _ref_fuse, lambda got, want: _assert_close(got, want, "fused features", atol=1e-6, rtol=1e-4),
-    ("features.fuse",))
+    ("features.descriptors.fuse",))
 
 
 @_case("student_fuse", 3, "w = 0.5 on features of different widths")
@@ -388,7 +388,7 @@ def _(d: Draw):
 # Registration recall over a ladder (04).
 
 def _ref_rr(re, te, ladder) -> list[float]:
-    from .. import metrics
+    from freereg_lib.geometry import metrics
 
     re_a, te_a = np.asarray(re, dtype=np.float64), np.asarray(te, dtype=np.float64)
     rows = [{"IR": 0.0, "IN": 0, "RE": a, "TE": b} for a, b in zip(re_a, te_a)]
@@ -402,12 +402,12 @@ _exercise(
     "is a failure that still counts in the total",
     _ref_rr, lambda got, want: _assert_close(np.asarray(got, dtype=np.float64).reshape(-1), want,
                                              "RR per rung (%)"),
-    ("metrics.aggregate", "metrics.registered"))
+    ("geometry.metrics.aggregate", "geometry.metrics.registered"))
 
 
 @_case("student_registration_recall", 4, "the paper's indoor ladder, some pairs without a pose")
 def _(d: Draw):
-    from ..config import config_for
+    from freereg_lib.config import config_for
 
     cfg = config_for("synthetic_indoor")
     re, te = d.rng.exponential(8.0, 40), d.rng.exponential(0.3, 40)

@@ -1,6 +1,6 @@
 """The grading process: scores submissions without ever running a line of student code.
 
-For each run (``python -m freereg_lib.assignments grade PATH [PATH ...]``) it draws a secret
+For each run (``python -m freereg_lib.teaching.assignments grade PATH [PATH ...]``) it draws a secret
 seed, draws every case's inputs from it (:mod:`.exercises`) and computes, in this process, the
 library's reference answer to each call and the answer a call of the altered reference would
 give (:mod:`.poison`). Then, for each submission in turn, it starts a student process
@@ -28,9 +28,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from . import notebooks as N
-from . import poison, sandbox, wire
-from .exercises import EXERCISES, Draw, Exercise, points
+from freereg_lib.teaching import notebooks as N
+from freereg_lib.teaching import poison, sandbox, wire
+from freereg_lib.teaching.exercises import EXERCISES, Draw, Exercise, points
 
 CASE_TIMEOUT_S = 30.0     # per call of a student's function (soft: in the student's process)
 STUDENT_LIMIT_S = 600.0   # hard wall-clock limit of one student's process

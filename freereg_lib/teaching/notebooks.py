@@ -22,9 +22,9 @@ import tokenize
 import zipfile
 from pathlib import Path
 
-from .exercises import EXERCISES
+from freereg_lib.teaching.exercises import EXERCISES
 
-ROOT = Path(__file__).resolve().parent.parent.parent
+ROOT = Path.cwd()  # the project folder the command runs in (make runs there); never where this file lies
 NOTEBOOKS = ROOT / "notebooks"
 DEFAULT_OUT = ROOT / "assignments" / "student"
 DEFAULT_DIST = ROOT / "assignments" / "handout"
@@ -252,7 +252,7 @@ def student_notebook(nb, stem: str):
         banner.pop("id", None)
     out.cells.insert(0, banner)
     out.metadata[METADATA_KEY] = {"notebook": stem, "exercises": functions,
-                                  "generated_by": "python -m freereg_lib.assignments make"}
+                                  "generated_by": "python -m freereg_lib.teaching.assignments make"}
     return out
 
 
@@ -392,7 +392,7 @@ def dist(out: str | Path = DEFAULT_DIST, notebooks: str | Path = NOTEBOOKS, zip_
         shutil.rmtree(out)
     (out / "notebooks").mkdir(parents=True)
     ignore = shutil.ignore_patterns(*_DIST_SKIP, "*.pyc")
-    shutil.copytree(root / "freereg_lib", out / "freereg_lib", ignore=ignore)
+    shutil.copytree(Path(__file__).resolve().parents[1], out / "freereg_lib", ignore=ignore)
     shutil.copytree(root / "environment", out / "environment", ignore=ignore)
     for name in ("pyproject.toml",):
         shutil.copy2(root / name, out / name)

@@ -149,6 +149,10 @@ def install(refs: Iterable[str], secret: str) -> None:
     for name in targets:
         if name in sys.modules:  # loaded before (by the runner itself): load it again, altered
             importlib.reload(sys.modules[name])
+    for name in targets:  # then the packages that re-export its names (``features.fuse``)
+        package = name.rpartition(".")[0]
+        if package in sys.modules and package != "freereg_lib":
+            importlib.reload(sys.modules[package])
 
 
 # --------------------------------------------------------------------------------------
@@ -170,6 +174,10 @@ def altered(refs: Iterable[str], secret: str):
                 return perturb(_f(*args, **kwargs), secret)
 
             setattr(mod, name, wrapper)
+            package = sys.modules.get(mod.__name__.rpartition(".")[0])
+            if package is not None and getattr(package, name, None) is original:  # a re-export
+                saved.append((package, name, original))
+                setattr(package, name, wrapper)
         yield
     finally:
         for mod, name, original in reversed(saved):

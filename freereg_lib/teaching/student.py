@@ -31,7 +31,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from . import poison, sandbox, wire
+from freereg_lib.teaching import poison, sandbox, wire
 
 
 class _Namespace(dict):
@@ -98,7 +98,7 @@ def load_functions(nb, name: str, timeout: float | None) -> tuple[dict[str, Call
     ``freereg_lib`` modules. A function the student defined in an untagged cell is taken from
     there (only its ``def``). Nothing else of the notebook runs.
     """
-    from . import notebooks as N
+    from freereg_lib.teaching import notebooks as N
 
     ns = _Namespace(N._import_statements(nb))
     problems: dict[str, str] = {}
@@ -191,7 +191,7 @@ def run(job_dir: Path) -> int:
     poison.install(job["refs"], job["poison"])
     import nbformat
 
-    from . import notebooks as N
+    from freereg_lib.teaching import notebooks as N
 
     books, skipped = [], []
     for path in job["notebooks"]:

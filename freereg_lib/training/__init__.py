@@ -10,7 +10,7 @@
   :mod:`.splits`; :mod:`.evaluate_split`, :mod:`.evaluate_layers`, :mod:`.fusion_sweep`);
   :mod:`.card` writes the model cards beside the weights.
 
-Each is a ``python -m freereg_lib.training.<name>`` command. The library (pipeline, backends,
-:mod:`freereg_lib.micro`, which holds the architectures and loads the weights) never imports
+Each is a ``python -m freereg_lib.training.<name>`` command. The library (pipeline, models,
+:mod:`freereg_lib.models.micro`, which holds the architectures and loads the weights) never imports
 this package (``tests/test_layers.py``).
 """

@@ -1,6 +1,6 @@
 """The micro models' model card, written from what training and evaluation recorded.
 
-    python -m freereg_lib.training.card [--weights freereg_lib/micro/weights]
+    python -m freereg_lib.training.card [--weights freereg_lib/models/micro/weights]
 
 Reads ``training.json`` (from ``train_diffusion --export``), ``eval.json`` (from
 ``evaluate --out``) and ``test_split.json`` / ``dev_split.json`` (from ``evaluate_split
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..micro import models as M
+from freereg_lib.models.micro import diffusion as M
 
 # Measured, not computed: the wall times `retrain` printed (README, "Retrain and re-measure").
 RETRAIN_MEASURED = (
@@ -66,14 +66,14 @@ def _row(name: str, r: dict) -> str:
 def _p_text(p: float) -> str:
     """A permutation p-value (:func:`.evaluate.paired_permutation_p`), as a bound when no
     permutation reached the observed difference."""
-    from .evaluate import PERMUTATIONS
+    from freereg_lib.training.evaluate import PERMUTATIONS
 
     return f"< {1 / PERMUTATIONS:.4f}" if p <= 1.0 / (PERMUTATIONS + 1) + 1e-12 else f"= {p:.4f}"
 
 
 def _noise_seed(run: dict) -> int:
     """The diffusion features' noise seed of an ``evaluate`` result (the config's when unchanged)."""
-    from ..config import FreeRegConfig
+    from freereg_lib.config import FreeRegConfig
 
     return run["config_changes"].get("seed", FreeRegConfig().seed)
 
@@ -110,7 +110,7 @@ def _more_evaluations(folder: Path) -> list[str]:
 
 def _diagnoses(folder: Path) -> list[str]:
     """Rows of the FreeReg-D decompositions (``diagnose_*.json``, :mod:`.diagnose`)."""
-    from .diagnose import COMPARISONS, VARIANTS
+    from freereg_lib.training.diagnose import COMPARISONS, VARIANTS
 
     runs = [json.loads(f.read_text()) for f in sorted(folder.glob("diagnose_*.json"))]
     if not runs:
@@ -151,7 +151,7 @@ def _sweeps(folder: Path) -> list[str]:
     ``controlnet_scale/``: ``evaluate --trained-only`` with one config field changed), each
     beside the default-config run of the same pairs, pair seed and noise seed (``eval.json``,
     ``eval_*.json``) with a paired p."""
-    from .evaluate import paired_permutation_p
+    from freereg_lib.training.evaluate import paired_permutation_p
 
     baselines = {}
     for f in [folder / "eval.json", *sorted(folder.glob("eval_*.json"))]:
@@ -236,7 +236,7 @@ def write_card(folder: Path = M.WEIGHTS_DIR) -> Path:
         "",
         "Miniature Stable Diffusion v1.5 + depth ControlNet, trained from scratch on this repository's",
         "synthetic indoor rooms by `python -m freereg_lib.training.train_diffusion` (architectures:",
-        "`freereg_lib/micro/models.py`; `python -m freereg_lib.training.retrain` reruns the whole schedule, the",
+        "`freereg_lib/models/micro/diffusion.py`; `python -m freereg_lib.training.retrain` reruns the whole schedule, the",
         "history below, from scratch). They let a CPU run FreeReg's diffusion branch with *learned*",
         "weights (`get_backend(\"micro\")`). They are not Stable Diffusion: a few million parameters, one",
         "synthetic world, two texts. Numbers measured with them are a miniature of the paper's experiment,",
@@ -373,7 +373,7 @@ def write_fcgf_card(folder: Path = M.WEIGHTS_DIR / "fcgf") -> Path:
         "",
         "FCGF's ResUNetBN2C (Choy et al., ICCV 2019) at the paper's 3DMatch settings (conv1 kernel 7,",
         "32-d unit-norm features, 2.5 cm voxels), trained from scratch on this repository's synthetic rooms",
-        "by `python -m freereg_lib.training.train_fcgf`. The network is `freereg_lib/backends/fcgf.py`'s, and",
+        "by `python -m freereg_lib.training.train_fcgf`. The network is `freereg_lib/models/fcgf.py`'s, and",
         "these weights load with `load_fcgf`, the official checkpoints' loader. The `micro` backend hands it",
         "to the pipeline when `cfg.geometric = \"fcgf\"`. It is not FCGF's 3DMatch model: one synthetic",
         "world, a few hundred steps.",
@@ -439,7 +439,7 @@ def write_fcgf_card(folder: Path = M.WEIGHTS_DIR / "fcgf") -> Path:
             for name in ("micro (FCGF)", "micro (FPFH)", "random weights (FCGF)"):
                 for variant, r in ch[name].items():
                     lines.append(f"| {name} | {variant} | {_cell(r['IR'])} | {_cell(r['FMR'])} | {_cell(r['RR'])} |")
-            from .evaluate_fcgf import VERDICT, ladder_order
+            from freereg_lib.training.evaluate_fcgf import VERDICT, ladder_order
 
             lo = ladder_order(ch["micro (FCGF)"])
             lines += [

@@ -39,8 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .evaluate import bootstrap_ci, paired_permutation_p
-from .splits import guard_eval_seed
+from freereg_lib.training.evaluate import bootstrap_ci, paired_permutation_p
+from freereg_lib.training.splits import guard_eval_seed
 
 VARIANTS = ("freereg_d", "hint_from_frame", "appearance_redrawn", "generation_oracle", "same_modality")
 # The paired tests reported: the hint's cost, the generation's (split at the colours no depth
@@ -60,7 +60,7 @@ def render_with_depth_camera_images(kind: str, seed, overlap=(0.3, 0.8), image_s
     """``synthetic.make_pair(kind, seed, overlap, image_size, depth_camera_image=True)`` with,
     in ``meta["depth_camera_image_redrawn"]``, the depth camera's image of the same room in the
     colouring of :func:`appearance_seed` (``make_pair(..., appearance_seed=...)``)."""
-    from .. import synthetic
+    from freereg_lib.data import synthetic
 
     pair = synthetic.make_pair(kind, seed=seed, overlap=overlap, image_size=image_size, depth_camera_image=True)
     redrawn = synthetic.make_pair(kind, seed=seed, overlap=overlap, image_size=image_size,
@@ -91,7 +91,7 @@ def with_depth_camera_image(pair):
 def recoloured(pair):
     """The synthetic indoor ``pair`` made again in the colouring of :func:`appearance_seed`:
     the same room, poses and cloud (notebook 01's Fig. 2-I shows its image beside the photo)."""
-    from .. import synthetic
+    from freereg_lib.data import synthetic
 
     seed = _synthetic_indoor_seed(pair)
     return synthetic.make_pair("indoor", seed=seed, overlap=pair.meta["overlap_range"], image_size=pair.image_size,
@@ -104,7 +104,7 @@ def depth_side_maps(pair, view, frame_view, backend, layers) -> tuple[dict, dict
     ``frame_view`` the one made from its full depth frame (:func:`frame_view`);
     ``pair.meta`` must hold the true depth-camera image and its re-coloured version
     (:func:`with_depth_camera_image`)."""
-    from .. import pipeline
+    from freereg_lib import pipeline
 
     image_b = pair.meta.get("depth_camera_image")
     redrawn = pair.meta.get("depth_camera_image_redrawn")
@@ -127,7 +127,7 @@ def frame_view(pair, cfg):
     (no projection of the sampled cloud; densified and normalised as the pipeline does)."""
     import dataclasses
 
-    from .. import pipeline
+    from freereg_lib import pipeline
 
     if pair.depth_frame_gt is None:
         raise ValueError(f"pair {pair.name} holds no full depth frame (depth_frame_gt); a synthetic pair "
@@ -137,7 +137,8 @@ def frame_view(pair, cfg):
 
 def pair_inlier_ratios(pair, backend, cfg) -> dict[str, float]:
     """FreeReg-D's IR (fraction) on ``pair`` under each of :data:`VARIANTS`."""
-    from .. import metrics, pipeline
+    from freereg_lib import pipeline
+    from freereg_lib.geometry import metrics
 
     view = pipeline.depth_view(pair, cfg)
     maps_image, depth_maps = depth_side_maps(pair, view, frame_view(pair, cfg), backend, cfg.layers)
@@ -158,8 +159,8 @@ def diagnose(n_pairs: int = 30, seed: int = 2026, weights_dir=None, random_weigh
     the paired permutation p between neighbouring variants."""
     from tqdm.auto import tqdm
 
-    from ..backends import get_backend
-    from ..config import FreeRegConfig
+    from freereg_lib.config import FreeRegConfig
+    from freereg_lib.models import get_backend
 
     cfg = FreeRegConfig() if noise_seed is None else FreeRegConfig().override(seed=int(noise_seed))
     backend = get_backend("micro", cfg, device="cpu", weights_dir=weights_dir, random_weights=random_weights)

@@ -6,7 +6,7 @@
 
 Runs FreeReg-D (decoder layers 0, 4, 6; PnP-RANSAC) through :func:`freereg_lib.pipeline.run_pairs`
 on synthetic indoor pairs made from integer seeds, kept off the training rooms' two-word seed
-sequence (:mod:`.views`) by :func:`freereg_lib.synthetic.check_eval_seed`, once with the ``micro`` backend's trained weights and
+sequence (:mod:`.views`) by :func:`freereg_lib.data.synthetic.check_eval_seed`, once with the ``micro`` backend's trained weights and
 once with the same architecture's random weights. Prints IR, FMR and RR with 95 % bootstrap
 intervals over pairs, the ratio of the mean IRs and a paired sign-flip permutation test.
 ``--random-from`` takes the random-weight run from an earlier result of the same pairs, noise
@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .splits import guard_eval_seed
+from freereg_lib.training.splits import guard_eval_seed
 
 VARIANT = ("FreeReg-D", "pnp")
 PERMUTATIONS = 20000  # sign flips of the paired test; its smallest p is 1 / (PERMUTATIONS + 1)
@@ -85,9 +85,10 @@ def evaluate(n_pairs: int = 30, seed: int = 2026, weights_dir=None, progress: bo
     config's seed (the diffusion features' noise draws); ``which=("trained",)`` skips the
     random baseline (a sweep of the trained model); ``random_from`` (an earlier result of the
     same pairs and config, checked by :func:`reuse_random`) gives the random run instead of running it again."""
-    from .. import pipeline, sources
-    from ..backends import get_backend
-    from ..config import FreeRegConfig
+    from freereg_lib import pipeline
+    from freereg_lib.config import FreeRegConfig
+    from freereg_lib.data import sources
+    from freereg_lib.models import get_backend
 
     if noise_seed is not None:
         changes = {**changes, "seed": int(noise_seed)}

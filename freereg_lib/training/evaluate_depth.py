@@ -1,12 +1,12 @@
 """Held-out quality of the micro monocular depth, its model card and figure.
 
     python -m freereg_lib.training.evaluate_depth [--pairs 30] [--seed 2026]
-        [--weights freereg_lib/micro/weights/depth] [--figure figures/02_micro_depth.png]
+        [--weights freereg_lib/models/micro/weights/depth] [--figure figures/02_micro_depth.png]
 
 On synthetic indoor pairs (``make_pairs(n, "indoor", seed)``; the training rooms come from a
-stream that the seed guard, :func:`freereg_lib.synthetic.check_eval_seed`, keeps evaluation
+stream that the seed guard, :func:`freereg_lib.data.synthetic.check_eval_seed`, keeps evaluation
 off), each 480 x 640 image's depth is predicted through the full
-:class:`~freereg_lib.backends.zoedepth.ZoeDepthEstimator` path (padding, flip averaging, bicubic
+:class:`~freereg_lib.models.zoedepth.ZoeDepthEstimator` path (padding, flip averaging, bicubic
 resize) by the trained micro ZoeDepth and by the same architecture with random weights, beside
 the stub's designed error (``StubBackend(cfg).mono_depth(image, depth_gt)``).
 
@@ -26,8 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..micro import depth as MD
-from .splits import guard_eval_seed
+from freereg_lib.models.micro import depth as MD
+from freereg_lib.training.splits import guard_eval_seed
 
 BINS = ((0.0, 2.0), (2.0, 4.0), (4.0, np.inf))
 EDGE_RANGE_M, EDGE_WINDOW = 0.2, 7
@@ -177,7 +177,7 @@ def write_card(folder: Path, ev: dict) -> None:
         "# Micro monocular depth (micro ZoeDepth): model card",
         "",
         "transformers' `ZoeDepthForDepthEstimation` (the class the `real` backend loads) with a small "
-        f"configuration (`freereg_lib/micro/depth.py`): BEiT backbone {bb['num_hidden_layers']} layers x "
+        f"configuration (`freereg_lib/models/micro/depth.py`): BEiT backbone {bb['num_hidden_layers']} layers x "
         f"{bb['hidden_size']} channels, patch {bb['patch_size']}, relative position bias; DPT neck at "
         f"{cf['fusion_hidden_size']} channels, reassemble factors {cf['reassemble_factors']}; one metric bin head, 32 bins over "
         f"{MD.MIN_DEPTH:g}..{MD.MAX_DEPTH:g} m. {tr['parameters_millions']} M parameters, "
@@ -199,11 +199,11 @@ def write_card(folder: Path, ev: dict) -> None:
         f"- Validation MAE (no flip): {tr['val_mae'][0][1]:.3f} m at step {tr['val_mae'][0][0]} -> "
         f"{tr['val_mae'][-1][1]:.3f} m at step {tr['val_mae'][-1][0]}. Curves: `loss_curve.png`.",
         ("- Retrain: `OMP_NUM_THREADS=1 python -m freereg_lib.training.train_depth --threads 1 --steps "
-         f"{tr['steps']} --export freereg_lib/micro/weights/depth` (seeded, resumable), then "
+         f"{tr['steps']} --export freereg_lib/models/micro/weights/depth` (seeded, resumable), then "
          "`python -m freereg_lib.training.evaluate_depth`." if "--init-from" not in tr.get("schedule_history", "") else
          "- Retrain: follow the schedule above: the first phase on 500 rooms (`train_depth --scenes 500 "
          "--steps 4100 --export A`, whose own warm restarts are listed), then `train_depth --init-from A "
-         f"--scenes {a['scenes']} --steps {tr['steps']} --export freereg_lib/micro/weights/depth` (seeded, "
+         f"--scenes {a['scenes']} --steps {tr['steps']} --export freereg_lib/models/micro/weights/depth` (seeded, "
          "resumable), then `python -m freereg_lib.training.evaluate_depth`. The first 500 rooms are the same "
          "in both view sets."),
         "",
@@ -273,9 +273,9 @@ def kind_text(m: dict, s: dict) -> str:
 def main(argv=None) -> int:
     import torch
 
-    from ..backends.stub import StubBackend
-    from ..config import FreeRegConfig
-    from ..synthetic import make_pairs
+    from freereg_lib.config import FreeRegConfig
+    from freereg_lib.data.synthetic import make_pairs
+    from freereg_lib.models.stub import StubBackend
 
     args = parse_args(argv)
     guard_eval_seed(args.seed, args.pairs)  # no pair may draw a training room

@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from .evaluate import bootstrap_ci, paired_permutation_p
-from .splits import guard_eval_seed
+from freereg_lib.training.evaluate import bootstrap_ci, paired_permutation_p
+from freereg_lib.training.splits import guard_eval_seed
 
 CHAIN_VARIANTS = (("FreeReg-G", "kabsch"), ("FreeReg-G", "pnp"), ("FreeReg", "kabsch"), ("FreeReg", "pnp"))
 PAPER = {"FreeReg-G IR": 31.4, "FreeReg-G FMR": 90.7, "FreeReg-G RR (Kabsch)": 50.4}
@@ -36,7 +36,8 @@ PAPER = {"FreeReg-G IR": 31.4, "FreeReg-G FMR": 90.7, "FreeReg-G RR (Kabsch)": 5
 
 def _ir(pair, feats, m, cfg, tau: float) -> float:
     """Inlier ratio of matches ``m`` at ``tau`` metres, scored as :func:`pipeline.evaluate`."""
-    from .. import metrics, pipeline
+    from freereg_lib import pipeline
+    from freereg_lib.geometry import metrics
 
     return metrics.inlier_stats(*pipeline.correct_matches(pair, feats, m, cfg, tau))[0]
 
@@ -51,8 +52,8 @@ def _stats(values, fmr_ratio: float | None = None) -> dict:
 
 def features_alone(pairs, cfg, progress: bool = True, fcgf_dir=None) -> dict:
     """Per-method IR at 10 cm and at tau_c with true image depth (measurement 1)."""
-    from .. import pipeline
-    from ..backends import get_backend
+    from freereg_lib import pipeline
+    from freereg_lib.models import get_backend
 
     setups = {
         "micro FCGF": (get_backend("micro", cfg, fcgf_weights_dir=fcgf_dir), "fcgf"),
@@ -83,8 +84,9 @@ def chain(pairs, cfg, progress: bool = True, fcgf_dir=None, geometric: str = "fc
     compared with FPFH and with the chain at random weights) or ``"fpfh"`` (the micro depth,
     diffusion models and FPFH, compared with the chain at random weights: the learned
     depth's effect on FreeReg-G, and Table 9's ladders, while no micro FCGF beats FPFH)."""
-    from .. import metrics, pipeline
-    from ..backends import get_backend
+    from freereg_lib import pipeline
+    from freereg_lib.geometry import metrics
+    from freereg_lib.models import get_backend
 
     if geometric not in ("fcgf", "fpfh"):
         raise ValueError(f"geometric must be 'fcgf' or 'fpfh', got {geometric!r}")
@@ -175,7 +177,7 @@ VERDICT = {True: "holds here", False: "does not hold here", "tie": "cannot be to
 
 def ladder_line(lo: dict, res: dict) -> str:
     """Table 9 as measured, both ladders in full, and whether the paper's ordering holds."""
-    from ..paper import table
+    from freereg_lib.data.paper import table
 
     method = lo["method"]
     pnp, kab = res[f"{method} pnp"]["ladder"], res[f"{method} kabsch"]["ladder"]
@@ -190,8 +192,8 @@ def ladder_line(lo: dict, res: dict) -> str:
 
 
 def main(argv=None) -> int:
-    from .. import synthetic
-    from ..config import FreeRegConfig
+    from freereg_lib.config import FreeRegConfig
+    from freereg_lib.data import synthetic
 
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--pairs", type=int, default=30)

@@ -3,7 +3,7 @@
     python -m freereg_lib.training.evaluate_layers --split test [--pairs 100] [--shard 0/1]
         --rows runs/micro/test_layers.jsonl
     python -m freereg_lib.training.evaluate_layers --split test --summarize
-        --rows runs/micro/test_layers.jsonl --out freereg_lib/micro/weights/test_split_layers.json
+        --rows runs/micro/test_layers.jsonl --out freereg_lib/models/micro/weights/test_split_layers.json
 
 Per pair the nine decoder maps of both sides are computed once (:func:`freereg_lib.pipeline.diffusion_maps`,
 noise seed = the split's), then each of Table 2's rows (single layers a-i, combinations j-m) is reduced
@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .evaluate import paired_permutation_p
-from .evaluate_split import _done, _git_head, _stat, load_rows, publish
-from .splits import SPLITS
+from freereg_lib.training.evaluate import paired_permutation_p
+from freereg_lib.training.evaluate_split import _done, _git_head, _stat, load_rows, publish
+from freereg_lib.training.splits import SPLITS
 
 LAYER_SETS = {"a": [0], "b": [1], "c": [2], "d": [3], "e": [4], "f": [5], "g": [6], "h": [7], "i": [8],
               "j": [0, 4], "k": [0, 6], "l": [4, 6], "m": [0, 4, 6]}
@@ -35,7 +35,8 @@ def pair_rows(pair, backend, cfg) -> dict:
     """IR, IN, n_matches per Table 2 row for one pair."""
     from dataclasses import replace
 
-    from .. import features, metrics, pipeline
+    from freereg_lib import features, pipeline
+    from freereg_lib.geometry import metrics
 
     base = pipeline.compute_features(pair, backend, cfg, diffusion=False, geometric=False)
     maps_img, maps_dep = pipeline.diffusion_maps(pair, base.view, backend)
@@ -53,9 +54,9 @@ def pair_rows(pair, backend, cfg) -> dict:
 def run(split_name: str, n_pairs: int, rows_path: Path, shard: str = "0/1") -> None:
     from tqdm import tqdm
 
-    from .. import synthetic
-    from ..backends import get_backend
-    from ..config import FreeRegConfig
+    from freereg_lib.config import FreeRegConfig
+    from freereg_lib.data import synthetic
+    from freereg_lib.models import get_backend
 
     split = SPLITS[split_name]
     i, n = (int(x) for x in shard.split("/"))
@@ -75,8 +76,8 @@ def run(split_name: str, n_pairs: int, rows_path: Path, shard: str = "0/1") -> N
 
 
 def summarize(recs: list[dict], split_name: str) -> dict:
-    from .. import paper
-    from ..config import FreeRegConfig
+    from freereg_lib.config import FreeRegConfig
+    from freereg_lib.data import paper
 
     split = SPLITS[split_name]
     cfg = FreeRegConfig(seed=split.noise_seed)

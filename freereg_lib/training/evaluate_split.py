@@ -4,7 +4,7 @@ each with Kabsch-RANSAC and PnP-RANSAC, on the same pairs with the same noise dr
     python -m freereg_lib.training.evaluate_split --split test [--pairs 100] [--shard 0/2]
         --rows runs/micro/test_split/rows.jsonl
     python -m freereg_lib.training.evaluate_split --split test --summarize
-        --rows runs/micro/test_split/rows.jsonl --out freereg_lib/micro/weights/test_split.json
+        --rows runs/micro/test_split/rows.jsonl --out freereg_lib/models/micro/weights/test_split.json
 
 Per pair the micro backend's features are computed once (diffusion decoder layers 0, 4, 6; the
 micro depth with FPFH, the backend's geometric default), then the three methods (w = 1, 0 and the
@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .evaluate import bootstrap_ci, paired_permutation_p
-from .splits import SPLITS
+from freereg_lib.training.evaluate import bootstrap_ci, paired_permutation_p
+from freereg_lib.training.splits import SPLITS
 
 METHODS = ("FreeReg-D", "FreeReg-G", "FreeReg")
 SOLVERS = ("kabsch", "pnp")
@@ -54,7 +54,7 @@ def save_features(feats, path: Path) -> None:
 
 
 def load_features(path: Path):
-    from ..pipeline import PairFeatures
+    from freereg_lib.pipeline import PairFeatures
 
     with np.load(path) as z:
         return PairFeatures(**{f: z[f] for f in FEATURE_FIELDS}, mono_depth=None, view=None)
@@ -67,9 +67,10 @@ def run(split_name: str, n_pairs: int, rows_path: Path, shard: str = "0/1", weig
     (``<k>.npz``, for choices made on the development set without recomputing them)."""
     from tqdm import tqdm
 
-    from .. import pipeline, synthetic
-    from ..backends import get_backend
-    from ..config import FreeRegConfig
+    from freereg_lib import pipeline
+    from freereg_lib.config import FreeRegConfig
+    from freereg_lib.data import synthetic
+    from freereg_lib.models import get_backend
 
     split = SPLITS[split_name]
     i, n = (int(x) for x in shard.split("/"))
@@ -127,7 +128,7 @@ def _stat(v) -> dict:
 
 
 def summarize(recs: list[dict], split_name: str) -> dict:
-    from ..config import FreeRegConfig
+    from freereg_lib.config import FreeRegConfig
 
     split = SPLITS[split_name]
     cfg = FreeRegConfig(seed=split.noise_seed)

@@ -3,7 +3,7 @@
     python -m freereg_lib.training.fusion_sweep --split dev --cache runs/micro/split43/feat_dev
         --w 0.3 0.4 0.5 0.6 0.7 0.8 0.9 --solvers kabsch --out runs/micro/split43/sweep_dev.json
     python -m freereg_lib.training.fusion_sweep --split test --cache runs/micro/split43/feat_test
-        --w <the chosen w> --solvers kabsch pnp --out freereg_lib/micro/weights/test_split_w.json
+        --w <the chosen w> --solvers kabsch pnp --out freereg_lib/models/micro/weights/test_split_w.json
 
 Reads the features :mod:`.evaluate_split` cached per pair (``--cache``; the same pairs, noise seed and
 features as its rows), re-matches them at each w and solves (Kabsch-RANSAC and / or PnP-RANSAC), scored
@@ -25,13 +25,14 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from .evaluate import paired_permutation_p
-from .evaluate_split import _git_head, _stat, load_features, publish
-from .splits import SPLITS
+from freereg_lib.training.evaluate import paired_permutation_p
+from freereg_lib.training.evaluate_split import _git_head, _stat, load_features, publish
+from freereg_lib.training.splits import SPLITS
 
 
 def _ir(pair, feats, w, cfg) -> float:
-    from .. import metrics, pipeline
+    from freereg_lib import pipeline
+    from freereg_lib.geometry import metrics
 
     m = pipeline.match(feats, w)
     return metrics.inlier_stats(*pipeline.correct_matches(pair, feats, m, cfg), cfg.eval_few_matches)[0]
@@ -41,8 +42,8 @@ def choose_fpfh(split, pairs_feats, settings: list[tuple[float, float]], cfg) ->
     """Per setting, FreeReg-G's IR; the geometric features of the best setting replace the cached ones."""
     from dataclasses import replace
 
-    from .. import pipeline
-    from ..backends import get_backend
+    from freereg_lib import pipeline
+    from freereg_lib.models import get_backend
 
     backend = get_backend("micro", cfg, device="cpu")
     geo = {st: [] for st in settings}
@@ -64,8 +65,9 @@ def choose_fpfh(split, pairs_feats, settings: list[tuple[float, float]], cfg) ->
 
 def sweep(split_name: str, cache: Path, ws: list[float], solvers: list[str], n_pairs: int | None = None,
           fpfh: list[tuple[float, float]] | None = None) -> dict:
-    from .. import pipeline, synthetic
-    from ..config import FreeRegConfig
+    from freereg_lib import pipeline
+    from freereg_lib.config import FreeRegConfig
+    from freereg_lib.data import synthetic
 
     split = SPLITS[split_name]
     cfg = FreeRegConfig(seed=split.noise_seed)

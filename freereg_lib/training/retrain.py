@@ -29,8 +29,8 @@ import argparse
 import time
 from pathlib import Path
 
-from . import train_diffusion
-from .views import load_or_render, save_views
+from freereg_lib.training import train_diffusion
+from freereg_lib.training.views import load_or_render, save_views
 
 VIEWS_PER_SCENE = 4
 # (rooms, train_diffusion arguments) of each phase, as the committed weights were made.

@@ -12,13 +12,13 @@
 
 Every method of a split runs on the same pairs with the same noise seed (the config's ``seed``:
 the diffusion features' noise draws and the RANSAC draws), whatever the pair seed.
-Neither split's seeds reproduce a training room: :func:`freereg_lib.synthetic.check_eval_seed`.
+Neither split's seeds reproduce a training room: :func:`freereg_lib.data.synthetic.check_eval_seed`.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..synthetic import TrainingSeedError, check_eval_seed
+from freereg_lib.data.synthetic import TrainingSeedError, check_eval_seed
 
 
 @dataclass(frozen=True)

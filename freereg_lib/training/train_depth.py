@@ -2,14 +2,14 @@
 
     python -m freereg_lib.training.train_depth [--out runs/micro/train] [--scenes 500]
         [--steps 1500] [--batch 8] [--lr 5e-4] [--threads 1]
-        [--export freereg_lib/micro/weights/depth]
+        [--export freereg_lib/models/micro/weights/depth]
 
 Data: the cached training views (:mod:`.views`, the same ``views_indoor.npz`` the diffusion
 models use; rooms from a training stream evaluation seeds are kept off). The last 20 rooms'
 views are held out for validation, as in :mod:`.train_diffusion`.
 
 Pre- and post-processing are the inference path's
-(:class:`~freereg_lib.backends.zoedepth.ZoeDepthEstimator`):
+(:class:`~freereg_lib.models.zoedepth.ZoeDepthEstimator`):
 
 * each 128 x 192 view is brought back to the render size 480 x 640 (bicubic), so the
   processor's reflection padding ``int(sqrt(h / 2) * 3)`` is the same fraction of the image as
@@ -46,8 +46,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ..micro import depth as MD
-from .views import DEPTH_HW, RENDER_HW, load_or_render
+from freereg_lib.models.micro import depth as MD
+from freereg_lib.training.views import DEPTH_HW, RENDER_HW, load_or_render
 
 VAL_SCENES = 20
 SILOG_BETA = 0.15  # ZoeDepth's SILogLoss: Dg = Var(g) + beta * mean(g)^2 (beta = 1 - lambda, lambda = 0.85)

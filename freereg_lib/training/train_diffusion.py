@@ -2,8 +2,8 @@
 
     python -m freereg_lib.training.train_diffusion [--out runs/micro/train] [--scenes 500]
         [--steps-vae 700] [--steps-unet 2000] [--steps-controlnet 1200] [--batch 16]
-        [--export freereg_lib/micro/weights]
-    python -m freereg_lib.training.train_diffusion --init-from freereg_lib/micro/weights \
+        [--export freereg_lib/models/micro/weights]
+    python -m freereg_lib.training.train_diffusion --init-from freereg_lib/models/micro/weights \
         --stages controlnet --steps-controlnet 3000 --export runs/micro/weights_next
 
 The stages follow Stable Diffusion's recipe in miniature:
@@ -48,8 +48,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ..micro import models as M
-from .views import load_or_render
+from freereg_lib.models.micro import diffusion as M
+from freereg_lib.training.views import load_or_render
 
 STAGES = ("vae", "unet", "controlnet")
 KL_WEIGHT = 1e-6  # SD's autoencoder (kl-f8): the KL weight against a per-image summed NLL
@@ -335,8 +335,8 @@ class Denoising:
     def __init__(self, models, data: Data, latents, args):
         import torch
 
-        from ..backends.base import A_PROMPT
-        from ..config import FreeRegConfig
+        from freereg_lib.config import FreeRegConfig
+        from freereg_lib.models.base import A_PROMPT
 
         cfg = FreeRegConfig()
         self.unet, self.controlnet = models["unet"], models["controlnet"]

@@ -1,15 +1,15 @@
 """Train the micro FCGF from scratch: FCGF's hardest-contrastive loss on synthetic room clouds.
 
     python -m freereg_lib.training.train_fcgf [--out runs/micro/train] [--pairs 240] [--steps 500]
-        [--crop-radius 1.0] [--export freereg_lib/micro/weights/fcgf]
+        [--crop-radius 1.0] [--export freereg_lib/models/micro/weights/fcgf]
 
-The network is the plain-torch ``ResUNetBN2C`` of :mod:`freereg_lib.backends.fcgf` at the
+The network is the plain-torch ``ResUNetBN2C`` of :mod:`freereg_lib.models.fcgf` at the
 paper's 3DMatch settings (conv1 kernel 7, 32-d output, 2.5 cm voxels), so the weights it
-writes load with :func:`~freereg_lib.backends.fcgf.load_fcgf` exactly as the official
+writes load with :func:`~freereg_lib.models.fcgf.load_fcgf` exactly as the official
 checkpoints do.
 
 Data (:func:`training_pairs`): pair ``k`` is ``synthetic.make_pair("indoor", seed=(TRAIN_STREAM,
-k))``, a seed sequence that evaluation refuses to reach (:func:`freereg_lib.synthetic.check_eval_seed`). Its two clouds are the ones the
+k))``, a seed sequence that evaluation refuses to reach (:func:`freereg_lib.data.synthetic.check_eval_seed`). Its two clouds are the ones the
 pipeline gives FCGF at inference (:func:`freereg_lib.pipeline.compute_features`):
 
 * image side: the image's depth (here the true one), range-limited and edge-filtered as the
@@ -47,9 +47,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..micro.fcgf import VOXEL, build, save
-from ..synthetic.seeds import TRAIN_FCGF_PAIRS
-from .views import progress_map
+from freereg_lib.data.synthetic.seeds import TRAIN_FCGF_PAIRS
+from freereg_lib.models.micro.fcgf import VOXEL, build, save
+from freereg_lib.training.views import progress_map
 
 TRAIN_STREAM = TRAIN_FCGF_PAIRS  # 0xF3EE0002
 CACHE_FRAMES = "camera-camera+cloud-view"  # both clouds in their camera's frame, and the image camera's cloud view
@@ -91,9 +91,9 @@ def parse_args(argv=None) -> argparse.Namespace:
 def pair_clouds(pair, cfg=None) -> tuple[np.ndarray, np.ndarray]:
     """The two clouds the pipeline hands FCGF for ``pair``, with the image side's true depth:
     ``(image side (Na, 3) image camera's frame, depth side (Nb, 3) depth camera's frame)``, float64."""
-    from .. import cameras, projection
-    from ..config import FreeRegConfig
-    from ..pipeline import depth_view
+    from freereg_lib.config import FreeRegConfig
+    from freereg_lib.geometry import cameras, projection
+    from freereg_lib.pipeline import depth_view
 
     cfg = cfg or FreeRegConfig()
     d = np.asarray(pair.depth_gt, dtype=np.float64)
@@ -110,9 +110,9 @@ def cloud_view_from_image_camera(pair, cfg=None) -> np.ndarray:
     (projected, densified, back-projected): ``(N, 3)`` float64 in the image camera's frame."""
     from dataclasses import replace
 
-    from .. import cameras
-    from ..config import FreeRegConfig
-    from ..pipeline import depth_view
+    from freereg_lib.config import FreeRegConfig
+    from freereg_lib.geometry import cameras
+    from freereg_lib.pipeline import depth_view
 
     cfg = cfg or FreeRegConfig()
     seen = replace(pair, K_depth=pair.K_image, depth_size=pair.image_size,
@@ -122,13 +122,13 @@ def cloud_view_from_image_camera(pair, cfg=None) -> np.ndarray:
 
 def one_per_voxel(points: np.ndarray, voxel: float = VOXEL) -> np.ndarray:
     """The first point of each voxel (FCGF's quantisation), ``(M, 3)``."""
-    from ..backends.fcgf import voxelize
+    from freereg_lib.models.fcgf import voxelize
 
     return np.asarray(points)[voxelize(points, voxel)[1]]
 
 
 def _training_pair(k: int) -> dict:
-    from .. import synthetic as S
+    from freereg_lib.data import synthetic as S
 
     pair = S.make_pair("indoor", seed=(TRAIN_STREAM, int(k)))
     a, b = pair_clouds(pair)
@@ -200,7 +200,7 @@ def make_batch(pair: dict, rng: np.random.Generator, crop_radius: float, scale_a
     hands them to FCGF; ``"so3"`` rotates each side uniformly at random (FCGF's 3DMatch recipe).
     ``image_side``: the image side's cloud, ``"depth"`` (``pair["a"]``), ``"cloud"``
     (``pair["a_cloud"]``) or ``"mix"`` (either, drawn from ``rng``)."""
-    from ..backends.fcgf import voxelize
+    from freereg_lib.models.fcgf import voxelize
 
     if image_side == "mix":
         image_side = "cloud" if rng.random() < 0.5 else "depth"
@@ -242,8 +242,8 @@ def baseline_hit_ratios(batches: list[dict], seed: int = 0) -> dict:
     crops' voxels) and of random unit features (chance)."""
     import torch
 
-    from ..config import FreeRegConfig
-    from ..geometric import fpfh_features
+    from freereg_lib.config import FreeRegConfig
+    from freereg_lib.features.geometric import fpfh_features
 
     cfg = FreeRegConfig()
     r_normal, r_feature = cfg.normal_radius_factor * cfg.fpfh_voxel, cfg.fpfh_radius_factor * cfg.fpfh_voxel
@@ -264,7 +264,7 @@ def forward_pair(net, batch: dict):
     """Features of both crops from one pass (cloud B shifted far along x, as ME batches)."""
     import torch
 
-    from ..backends.fcgf import SparseTensor
+    from freereg_lib.models.fcgf import SparseTensor
 
     cb = batch["coords_b"].copy()
     cb[:, 0] += BATCH_SHIFT
@@ -336,7 +336,7 @@ def hit_ratio(fa, fb, pos: np.ndarray, coords_a, coords_b, tau: float = 0.1) -> 
 def main(argv=None) -> int:
     import torch
 
-    from .train_diffusion import run_stage
+    from freereg_lib.training.train_diffusion import run_stage
 
     args = parse_args(argv)
     torch.set_num_threads(args.threads or os.cpu_count() or 1)

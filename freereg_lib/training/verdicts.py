@@ -18,7 +18,7 @@ TUNED_JSON = "fusion/test_split_fpfh0.15_w0.5.json"
 
 
 def _load(name: str) -> dict | None:
-    from ..micro.models import WEIGHTS_DIR
+    from freereg_lib.models.micro.diffusion import WEIGHTS_DIR
 
     path = Path(WEIGHTS_DIR) / name
     return json.loads(path.read_text()) if path.exists() else None
@@ -29,7 +29,7 @@ def _ci(s: dict) -> str:
 
 
 def _sig(p: float) -> str:
-    from .evaluate import PERMUTATIONS
+    from freereg_lib.training.evaluate import PERMUTATIONS
 
     shown = f"p < {1 / PERMUTATIONS:.4f}" if p <= 1.0 / (PERMUTATIONS + 1) + 1e-12 else f"p = {p:.4f}"
     return f"{shown}, {'significant' if p < 0.05 else 'not significant'} at 5 %"
@@ -56,7 +56,7 @@ def glimpse(n_pairs: int) -> str:
 
 
 def _header(r: dict, name: str) -> str:
-    return (f"Committed test split (freereg_lib/micro/weights/{name}): {r['n_pairs']} synthetic indoor pairs "
+    return (f"Committed test split (freereg_lib/models/micro/weights/{name}): {r['n_pairs']} synthetic indoor pairs "
             f"never used for a choice, noise seed {r['noise_seed']} for every method; 95 % bootstrap intervals:")
 
 
@@ -96,7 +96,7 @@ def tuned_fpfh() -> list[str]:
     above = f["IR"]["mean"] > max(d["IR"]["mean"], g["IR"]["mean"])
     sig = above and f["p_IR_vs_D"] < 0.05 and f["p_IR_vs_G"] < 0.05
     return [f"With FPFH's voxel chosen on the development set ({r['fpfh']['best'].split(':')[0]} m; "
-            f"freereg_lib/micro/weights/{TUNED_JSON}), the same {r['n_pairs']} test pairs:",
+            f"freereg_lib/models/micro/weights/{TUNED_JSON}), the same {r['n_pairs']} test pairs:",
             f"  IR: FreeReg {_ci(f['IR'])}, FreeReg-D {_ci(d['IR'])}, FreeReg-G {_ci(g['IR'])}; fused above both: "
             + ("holds here (significantly above both: " if sig else "not shown here (")
             + f"{_sig(f['p_IR_vs_D'])} against FreeReg-D, {_sig(f['p_IR_vs_G'])} against FreeReg-G)",

@@ -3,18 +3,18 @@
 Scenes are drawn from ``numpy.random.default_rng((TRAIN_STREAM, k))`` (:func:`room_rng`): a seed
 sequence of two words. NumPy reads the integer ``TRAIN_STREAM + k * 2**32`` as the same two words,
 so an integer seed *can* reproduce room ``k``; evaluation refuses such seeds
-(:func:`freereg_lib.synthetic.check_eval_seed`, in ``make_pair`` and the evaluation commands), so no
+(:func:`freereg_lib.data.synthetic.check_eval_seed`, in ``make_pair`` and the evaluation commands), so no
 evaluation pair shares a room with the training data.
 
 Each view is a camera of a training room rendered at the synthetic pairs' size (480 x 640),
 then reduced to what the models see, exactly as the pipeline makes it at inference:
 
 * ``rgb``: the image resized to the diffusion input by the official rule
-  (:func:`~freereg_lib.backends.base.rgb_to_unit`'s resize), ``(3, h, w) uint8``;
+  (:func:`~freereg_lib.models.base.rgb_to_unit`'s resize), ``(3, h, w) uint8``;
 * ``hint``: the ControlNet hint of the same camera made as at inference: the camera's depth
   back-projected, subsampled to the synthetic cloud size, projected back on the camera,
   densified per ``cfg.densify`` (:func:`freereg_lib.pipeline.depth_view`), normalised by the
-  official rule and resized (:func:`~freereg_lib.backends.base.depth_hint`), ``(3, h, w) uint8``;
+  official rule and resized (:func:`~freereg_lib.models.base.depth_hint`), ``(3, h, w) uint8``;
 * ``depth``: the true depth at ``depth_hw`` (nearest), ``(h_d, w_d) float32`` metres, for the
   depth model.
 """
@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ..synthetic.seeds import TRAIN_ROOMS
+from freereg_lib.data.synthetic.seeds import TRAIN_ROOMS
 
 TRAIN_STREAM = TRAIN_ROOMS  # 0xF3EE0001
 RENDER_HW = (480, 640)
@@ -45,13 +45,13 @@ def _scene_views(args) -> dict[str, np.ndarray]:
     k, views_per_scene, kind = args
     import cv2
 
-    from ..backends.base import depth_hint, resize_to
-    from ..cameras import backproject, intrinsics, invert, transform
-    from ..config import FreeRegConfig
-    from ..pair import Pair
-    from ..pipeline import depth_view
-    from ..synthetic.indoor import _indoor_camera, _indoor_scene
-    from ..synthetic.pairs import _subsample
+    from freereg_lib.config import FreeRegConfig
+    from freereg_lib.data.pair import Pair
+    from freereg_lib.data.synthetic.indoor import _indoor_camera, _indoor_scene
+    from freereg_lib.data.synthetic.pairs import _subsample
+    from freereg_lib.geometry.cameras import backproject, intrinsics, invert, transform
+    from freereg_lib.models.base import depth_hint, resize_to
+    from freereg_lib.pipeline import depth_view
 
     if kind != "indoor":
         raise ValueError(f"training views exist for the indoor world only, got kind={kind!r}")

@@ -1,0 +1,191 @@
+"""Geometry checks where one's own data enters (``freereg register``, :mod:`freereg_lib.pipeline.register`).
+
+Each check raises :class:`InputError` (a ``ValueError``) with one line
+naming the input and what was expected (docs/troubleshooting.md, "When something goes wrong"):
+
+* :func:`positive`: ``--depth-scale``, ``--cloud-scale`` (0, negative, NaN or inf refused);
+* :func:`depth_size_fits`: ``--depth-size W H`` against the depth camera's principal point
+  (``--depth-K``) or, without one, against the image's aspect ratio (a depth camera given no
+  intrinsics has the image's field of view); ``H W`` given for ``W H`` is named as such;
+* :func:`exif_orientation`: the EXIF orientation tag of a photo. Images are read **as their
+  pixels are stored** (the tag is not applied, to the image or to its depth map), because
+  intrinsics and depth maps describe the sensor's stored pixel grid; a photo whose tag asks for
+  a rotation is said so in a note (:func:`exif_note`);
+* :func:`depth_units_against_cloud`: with a ground-truth pose, the image's true depth against
+  the cloud seen from that pose: a median ratio off by more than 25 % (2 mm units read as
+  1 mm give 0.5; a depth off by 3-10x) is refused with the ``--depth-scale`` that fits;
+* :func:`pose_sees_cloud`: a pose that shows almost none of the cloud while it puts most of
+  the cloud behind the camera or its inverse shows it (an inverted ``T_cam_pc``, a ``T_pc_cam``
+  given as ``T_cam_pc``);
+* :func:`recentre_offset`: the offset that re-centres a cloud far from its origin (UTM
+  coordinates, thousands of km) before solving; :func:`~freereg_lib.pipeline.register.register` applies
+  it and restores the pose after, a numerical safeguard that changes nothing for clouds near
+  their origin.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from freereg_lib.geometry import cameras
+from freereg_lib.geometry.projection import project_to_depth
+from freereg_lib.pipeline.register import InputError
+
+
+
+
+def _error(msg: str) -> Exception:
+    return InputError(msg)
+
+
+# --------------------------------------------------------------------------------------
+# Scales and sizes.
+
+def positive(value, flag: str, what: str) -> float:
+    """``value`` as a float when it is finite and > 0, else one line naming ``flag``."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise _error(f"{flag} must be a positive number ({what}), got {value!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise _error(f"{flag} must be a positive number ({what}), got {value!r}")
+    return v
+
+
+def depth_size_fits(image_hw: tuple[int, int], depth_hw: tuple[int, int], depth_K=None) -> None:
+    """Refuse a depth camera size given as ``H W`` for ``W H`` (``depth_hw`` is ``(H, W)`` as
+    parsed from ``--depth-size W H``), or one that does not fit its camera.
+
+    With ``depth_K``: its principal point must sit near the centre of the size as given
+    (:func:`~freereg_lib.geometry.cameras.check_size_order` catches the swap). Without: the depth camera
+    takes the image's intrinsics scaled to its size, so its aspect ratio must be the image's
+    (within 10 %); a swapped size, or another aspect, is refused (give ``--depth-K`` then).
+    """
+    Hd, Wd = (int(v) for v in depth_hw)
+    if Hd < 1 or Wd < 1:
+        raise _error(f"--depth-size W H must be two positive integers, got {Wd} {Hd}")
+    if depth_K is not None:
+        K = np.asarray(depth_K, dtype=np.float64)
+        K = cameras.intrinsics(*K.ravel()) if K.size == 4 else K.reshape(3, 3)
+        try:
+            cameras.check_size_order(K, (Hd, Wd), "--depth-size", "--depth-K")
+        except ValueError:
+            raise _error(f"--depth-size is W H (width first); you gave H W? --depth-size {Wd} {Hd} puts the depth "
+                         f"image's centre at ({(Wd - 1) / 2:g}, {(Hd - 1) / 2:g}), far from --depth-K's principal "
+                         f"point ({K[0, 2]:g}, {K[1, 2]:g}); --depth-size {Hd} {Wd} fits it") from None
+        return
+    H, W = image_hw
+    a_img, a_dep = W / H, Wd / Hd
+    if abs(a_dep - a_img) <= 0.1 * a_img:
+        return
+    swapped = abs(Hd / Wd - a_img) <= 0.1 * a_img
+    raise _error(
+        f"--depth-size {Wd} {Hd} (W H) has the aspect {a_dep:.3g}, the image {W} x {H} has {a_img:.3g}: "
+        + (f"you gave H W? --depth-size {Hd} {Wd} fits the image" if swapped else
+           "without --depth-K the depth camera takes the image's intrinsics scaled to its size, so its aspect "
+           "must be the image's; give --depth-K fx fy cx cy for a depth camera of another field of view"))
+
+
+# --------------------------------------------------------------------------------------
+# EXIF orientation.
+
+EXIF_ORIENTATION_TAG = 0x0112
+_EXIF_MEANING = {2: "mirrored", 3: "rotated 180 deg", 4: "flipped upside down", 5: "mirrored and rotated 90 deg",
+                 6: "rotated 90 deg clockwise", 7: "mirrored and rotated 270 deg", 8: "rotated 90 deg anticlockwise"}
+
+
+def exif_orientation(path: str | Path) -> int:
+    """The EXIF orientation tag of an image file (1 = as stored; 0 when the file has none)."""
+    try:
+        with Image.open(path) as im:
+            return int(im.getexif().get(EXIF_ORIENTATION_TAG, 0) or 0)
+    except Exception:
+        return 0
+
+
+def exif_note(path: str | Path) -> str:
+    """A note when ``path`` asks viewers to rotate or mirror it, else ``""``: the companion uses
+    the pixels as stored, for the image and its depth map alike."""
+    tag = exif_orientation(path)
+    if tag in (0, 1):
+        return ""
+    return (f"note: {Path(path).name} carries the EXIF orientation {tag} ({_EXIF_MEANING.get(tag, 'unknown')}); it is "
+            "NOT applied: the image is used as its pixels are stored, like its depth map, and --K / --intrinsics "
+            "must be the stored image's (a photo viewer shows it turned)")
+
+
+# --------------------------------------------------------------------------------------
+# Depth units against the cloud, and poses that look away from it.
+
+DEPTH_RATIO_TOLERANCE = 1.25  # the image depth / cloud depth median ratio must lie in [1/1.25, 1.25]
+MIN_DEPTH_COMPARED = 50       # pixels where both are known; fewer: not checked
+
+
+def cloud_depth_in_image(points: np.ndarray, K: np.ndarray, T_cam_pc: np.ndarray, size: tuple[int, int],
+                         max_points: int = 200_000) -> np.ndarray:
+    """The cloud's z-buffered depth seen by the image camera at ``T_cam_pc`` (0 = no point)."""
+
+    pts = points[:: max(1, len(points) // max_points)]
+    depth, _ = project_to_depth(pts, K, T_cam_pc, size, 1e-6)
+    return depth
+
+
+def depth_units_against_cloud(depth_gt: np.ndarray, points: np.ndarray, K: np.ndarray, T_cam_pc: np.ndarray,
+                              depth_scale: float, source: str = "--image-depth",
+                              scale_flag: str = "--depth-scale") -> float | None:
+    """The median ratio of the image's true depth to the cloud's depth at the same pixels (the
+    cloud seen with the ground-truth pose); refused when it is off 1 by more than 25 %
+    (``DEPTH_RATIO_TOLERANCE``), naming the ``--depth-scale`` that fits. ``None`` when fewer
+    than ``MIN_DEPTH_COMPARED`` pixels have both."""
+    cloud = cloud_depth_in_image(points, K, T_cam_pc, depth_gt.shape[:2])
+    both = (cloud > 0) & (depth_gt > 0) & np.isfinite(depth_gt)
+    if both.sum() < MIN_DEPTH_COMPARED:
+        return None
+    ratio = float(np.median(depth_gt[both] / cloud[both]))
+    if 1 / DEPTH_RATIO_TOLERANCE <= ratio <= DEPTH_RATIO_TOLERANCE:
+        return ratio
+    raise _error(
+        f"{source}: its depth is {ratio:.3g} x the cloud's depth at the same pixels (median over {int(both.sum())} "
+        f"pixels, the cloud seen with the ground-truth pose); {scale_flag} {depth_scale:g} looks wrong, "
+        f"{scale_flag} {depth_scale * ratio:.4g} fits (e.g. 500 for 2 mm units, 1000 for millimetres), "
+        "or the cloud is not in metres (--cloud-scale)")
+
+
+MIN_IN_VIEW = 0.05     # a pose that shows less than this share of the cloud in the image is refused when ...
+MIN_IN_FRONT = 0.5     # ... it puts more than half of the cloud behind the camera, or ...
+INVERSE_IN_VIEW = 0.2  # ... its inverse shows at least this share (the pose was given the wrong way round)
+
+
+def pose_sees_cloud(T_cam_pc: np.ndarray, points: np.ndarray, K: np.ndarray, size: tuple[int, int], what: str,
+                    inverse_name: str) -> None:
+    """Refuse a pose (``T_cam_pc``: the cloud into a camera of intrinsics ``K``, image ``size =
+    (H, W)``) that shows almost none of the cloud (under ``MIN_IN_VIEW`` of its points in the
+    image) while it puts most of the cloud behind the camera (under ``MIN_IN_FRONT`` in front),
+    or while its inverse shows a good part of it (``INVERSE_IN_VIEW``): an inverted pose, or
+    ``inverse_name`` given for it. A pose that shows the cloud passes whatever its direction."""
+    pts = np.asarray(points, dtype=np.float64)[:: max(1, len(points) // 50_000)]
+
+    def shares(T):
+        uv, z = cameras.project(cameras.transform(T, pts), K)
+        with np.errstate(invalid="ignore"):
+            inside = (z > 0) & (uv[:, 0] >= -0.5) & (uv[:, 0] < size[1] - 0.5) & (uv[:, 1] >= -0.5) \
+                & (uv[:, 1] < size[0] - 0.5)
+        return float(np.mean(z > 0)), float(np.mean(inside))
+
+    front, view = shares(T_cam_pc)
+    if view >= MIN_IN_VIEW:
+        return
+    _, inv_view = shares(cameras.invert(T_cam_pc))
+    if front >= MIN_IN_FRONT and inv_view < INVERSE_IN_VIEW:
+        return
+    hint = (f"; its inverse shows {inv_view:.0%} of it: did you give {inverse_name}?" if inv_view >= INVERSE_IN_VIEW
+            else "; check the pose's direction and the cloud's frame")
+    raise _error(f"{what} puts {1 - front:.0%} of the cloud behind the camera and {view:.0%} of it in the "
+                 f"{size[1]} x {size[0]} view{hint}")
+
+
+# --------------------------------------------------------------------------------------
+# Clouds far from their origin.
