@@ -125,7 +125,7 @@ class FreeRegConfig:
         _check_ranges(self)
 
     def group(self, name: str) -> dict:
-        """The fields of one of :data:`GROUPS` (``"solvers"``, ``"evaluation"``, ...) as a dict."""
+        """The fields of one of ``GROUPS`` (``"solvers"``, ``"evaluation"``, ...) as a dict."""
         if name not in GROUPS:
             raise KeyError(f"unknown config group {name!r}; known: {list(GROUPS)}")
         return {f: getattr(self, f) for f in GROUPS[name]}

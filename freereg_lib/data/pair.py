@@ -213,7 +213,7 @@ class UnreadablePair:
     """Stands in for a pair whose files could not be read, so a benchmark goes on.
 
     Loaders yield it (see :func:`load_or_record`) instead of raising in the middle of a run;
-    ``name`` and ``error`` are set, and :meth:`validate` or any other field re-raises the
+    ``name`` and ``error`` are set, and :meth:`Pair.validate` or any other field re-raises the
     original error, so :func:`freereg_lib.pipeline.run_pair` records it as a failed pair
     (not registered) and code that uses the pair directly sees the original message.
     """

@@ -11,7 +11,7 @@ the same pose (small motions: the first pairs of a sequence), "the same pixel" i
 good match, and a method that does not beat it has shown nothing about its features. The
 verdict lines (:func:`verdict_lines`) say so for every method.
 
-In a benchmark it is one more method name, :data:`METHOD`, run by
+In a benchmark it is one more method name, ``METHOD``, run by
 :func:`freereg_lib.pipeline.variant_rows` with every solver of the run
 (:func:`with_baseline`); its fusion weight ``w`` is NaN (no feature).
 """

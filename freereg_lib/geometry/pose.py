@@ -383,7 +383,7 @@ def pnp_ransac(
     synthetic pairs it is ~100x faster at the same recall with coarser poses; figures in
     ``benchmarks/README.md`` (``benchmarks/bench_pnp.py``).
 
-    ``workers > 1`` splits the ``iterations`` over that many threads (:func:`_best_of_workers`):
+    ``workers > 1`` splits the ``iterations`` over that many threads (``_best_of_workers``):
     the same solver and as many hypotheses, other random samples, ~``workers`` x faster on as
     many free cores (``workers = 1``: exactly one OpenCV call).
 

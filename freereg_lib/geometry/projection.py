@@ -25,7 +25,7 @@ def project_to_depth(
     outside ``(depth_min, depth_max)`` are dropped. ``pixel="official"``: the official
     ``proj_pc2dpt`` (demo and own data): pixel = int32 truncation of ``(K X)[:2] / (z + 1e-5)``,
     kept when ``0 <= u < W``, ``0 <= v < H`` and ``z > 0.05`` m, no far limit
-    (``depth_min`` / ``depth_max`` are not used; :func:`official_projection`). Measured on
+    (``depth_min`` / ``depth_max`` are not used). Measured on
     ICL frame 30 (20k points, ``parity`` fixture ``proj_pc2dpt/icl_identity``): rounding
     fills other pixels than the official code. Where several points land on one pixel the
     nearest (smallest z) wins.

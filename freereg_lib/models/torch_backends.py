@@ -38,7 +38,7 @@ DTYPES = ("float32", "float16", "bfloat16")
 
 def resolve_device(device: str | None = None, dtype=None):
     """``(torch.device, torch.dtype)``: CUDA when present, else the CPU; float32 unless
-    ``dtype`` (a ``torch.dtype`` or one of :data:`DTYPES`) says otherwise, on CUDA too."""
+    ``dtype`` (a ``torch.dtype`` or one of ``DTYPES``) says otherwise, on CUDA too."""
     import torch
 
     check_device(device)

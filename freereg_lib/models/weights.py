@@ -161,7 +161,7 @@ def resolve_all(specs: dict[str, tuple[str, tuple[str, ...]]],
 
 
 def check_sd_unet_variant(variant: str) -> str:
-    """``variant`` if it is one of :data:`SD_UNET_VARIANTS`, else a ``ValueError``."""
+    """``variant`` if it is one of ``SD_UNET_VARIANTS``, else a ``ValueError``."""
     if variant not in SD_UNET_VARIANTS:
         raise ValueError(f"sd_unet_variant must be one of {SD_UNET_VARIANTS} ('non_ema': the official "
                          f"weights; 'ema': diffusers' default files), got {variant!r}")

@@ -5,7 +5,7 @@
     freereg register IMAGE CLOUD --K fx fy cx cy [--depth-K ... --depth-size W H --depth-pose FILE]
     freereg register --demo FOLDER            # the official demo layout (data/demo/)
 
-or, as functions: :func:`load_inputs` (files -> a :class:`~freereg_lib.data.pair.Pair`),
+or, as functions: :func:`freereg_lib.commands.user_inputs.load_inputs` (files -> a :class:`~freereg_lib.data.pair.Pair`),
 :func:`register` (a pair -> a :class:`Registration`), and
 :func:`freereg_lib.report.registration.write_outputs` (the pose, the matches and the overlay as
 files). Reading and checking the user's files is :mod:`freereg_lib.commands.user_inputs`.
@@ -316,9 +316,9 @@ def register(
     (inliers of a pose with a plausible scale) wins; ``refine`` then renders the cloud from
     the estimated camera pose and registers again. ``log`` receives the progress lines.
 
-    The steps: re-centre a far cloud (:func:`_recentred`), choose the method and the depth cameras
-    (:func:`_candidates`), run the chain on each (:class:`_Attempt`), keep the best and refine it,
-    then the verdict (:func:`_registration`).
+    The steps: re-centre a far cloud (``_recentred``), choose the method and the depth cameras
+    (``_candidates``), run the chain on each (``_Attempt``), keep the best and refine it,
+    then the verdict (``_registration``).
     """
     say = log or (lambda s: None)
     t0 = time.perf_counter()

@@ -60,7 +60,7 @@ class DepthView:
 
     @property
     def hint_depth(self) -> np.ndarray:
-        """The map the ControlNet hint is made from: ``full`` (the official PNG, unclipped)."""
+        """The map the ControlNet hint is made from, ``full`` (the official PNG, unclipped)."""
         return self.dense if self.full is None else self.full
 
 

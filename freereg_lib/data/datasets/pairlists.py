@@ -108,7 +108,7 @@ def load_or_build(path: str | Path, dataset: str, rule: str, source: str,
 class PairSource:
     """A dataset loader: a fixed pair list and the :class:`Pair` of each entry.
 
-    Subclasses set ``dataset`` and implement :meth:`pair_list` and :meth:`pair`.
+    Subclasses set ``dataset`` and implement ``pair_list()`` and ``pair(entry)``.
     """
 
     dataset = "base"
@@ -128,7 +128,7 @@ class PairSource:
         The list is cut to ``n`` before sharding, so n shards together cover exactly the
         pairs of one unsharded run. A pair whose files cannot be read comes as an
         :class:`~freereg_lib.data.pair.UnreadablePair` holding the error, so a benchmark records
-        it and goes on (:meth:`pair` raises it directly).
+        it and goes on (``pair(entry)`` raises it directly).
         """
 
         entries = self.pair_list()[: n if n is not None else None]

@@ -8,7 +8,7 @@ This package owns the synthetic data source of the library:
   shading with cast shadows, ambient light, sky and haze outdoors), true depth and class ids;
 * the depth side: a second depth camera indoors, a 64-line rotating LiDAR outdoors, whose
   pose is resampled until the pair's overlap lies in a requested range;
-* :func:`overlap_ratio`, the overlap measure that range refers to, and :data:`CLASS_NAMES`.
+* :func:`overlap_ratio`, the overlap measure that range refers to, and ``CLASS_NAMES``.
 
 Modules: :mod:`.render` (primitives, raycasting, shading), :mod:`.indoor` and :mod:`.outdoor`
 (the scenes and their sensors), :mod:`.pairs` (the pairs and the overlap);

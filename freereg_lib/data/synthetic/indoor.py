@@ -2,7 +2,7 @@
 
 Rooms of boxes, cylinders and spheres (walls, floor, ceiling, 6-10 pieces of furniture placed
 without collisions, a ceiling lamp), drawn from the scene's generator; colours and textures
-through :class:`~.render._Looks`. The depth camera is a second pinhole camera near the image
+through ``render._Looks``. The depth camera is a second pinhole camera near the image
 camera, looking near where it looks.
 """
 from __future__ import annotations

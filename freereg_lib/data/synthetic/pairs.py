@@ -4,7 +4,7 @@
 The image camera is drawn in an indoor or outdoor scene (:mod:`.indoor`, :mod:`.outdoor`),
 then the depth side's pose is resampled until the pair's overlap lies in the requested range;
 the cloud is the depth camera's back-projected frame indoors, the LiDAR's returns outdoors,
-subsampled to at most :data:`MAX_POINTS`.
+subsampled to at most ``MAX_POINTS``.
 """
 from __future__ import annotations
 

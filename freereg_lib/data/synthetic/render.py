@@ -1,12 +1,12 @@
 """The synthetic world's renderer: primitives, their raycasting scene and their shading.
 
-* :class:`_Part`, a box, cylinder or sphere with its class and appearance, and :func:`_part`,
+* ``_Part``, a box, cylinder or sphere with its class and appearance, and ``_part``,
   which jitters its colour and draws its texture offset;
-* :class:`_Scene`, the parts baked once into an Open3D ``RaycastingScene`` (CPU), cast by a
+* ``_Scene``, the parts baked once into an Open3D ``RaycastingScene`` (CPU), cast by a
   pinhole camera or any rays, and shaded: procedural textures in object coordinates, Lambertian
   shading with cast shadows, ambient light, sky and haze outdoors;
-* :class:`_Looks`, the appearance draws of an indoor scene (the same room in another colouring);
-* :data:`CLASS_NAMES`, the classes of both worlds.
+* ``_Looks``, the appearance draws of an indoor scene (the same room in another colouring);
+* ``CLASS_NAMES``, the classes of both worlds.
 
 The scenes themselves are :mod:`.indoor` and :mod:`.outdoor`; the pairs, :mod:`.pairs`.
 """
@@ -380,7 +380,7 @@ def _part(
     tex_axis=(1.0, 0.0, 0.0),
 ) -> _Part:
     """A part with its colour jittered and its texture offset drawn from ``rng`` (a scene's
-    :class:`_Looks` indoors)."""
+    ``_Looks`` indoors)."""
     jitter = rng.uniform(0.85, 1.15, 3)
     return _Part(
         shape=shape,

@@ -52,7 +52,7 @@ def training_alias(seed) -> str | None:
 
 def check_eval_seed(seed) -> None:
     """Raise :class:`TrainingSeedError` when ``seed`` (an integer or a seed tuple) reaches a training
-    stream, i.e. its first 32-bit word is :data:`TRAIN_ROOMS` or :data:`TRAIN_FCGF_PAIRS`."""
+    stream, i.e. its first 32-bit word is ``TRAIN_ROOMS`` or ``TRAIN_FCGF_PAIRS``."""
     alias = training_alias(seed)
     if alias is not None:
         words = ", ".join(f"{w:#x}" for w in entropy_words(seed))

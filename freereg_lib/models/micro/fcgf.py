@@ -4,7 +4,7 @@ The network is :mod:`freereg_lib.models.fcgf`'s (conv1 kernel 7, 32-d unit-norm 
 2.5 cm voxels), so its weights load with :func:`~freereg_lib.models.fcgf.load_fcgf`, the
 loader of the official checkpoints. They live in ``weights/fcgf/`` as a float16 safetensors
 state dict (loaded as float32) with ``config.json``, ``training.json``, ``eval.json`` and a
-model card; :mod:`.train_fcgf` retrains them, :mod:`.evaluate_fcgf` measures them.
+model card; ``freereg_lib.training.train_fcgf`` retrains them, ``freereg_lib.training.evaluate_fcgf`` measures them.
 """
 from __future__ import annotations
 
