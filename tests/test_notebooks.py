@@ -34,6 +34,7 @@ EXPECTED = [
     "03_fusion.ipynb",
     "04_benchmark.ipynb",
     "05_your_data.ipynb",
+    "06_appendix.ipynb",
 ]
 ALL = sorted(set(EXPECTED) | {p.name for p in NOTEBOOKS.glob("*.ipynb")})
 # Every notebook's parameters cell declares these (the conventions of notebooks/).
@@ -77,6 +78,9 @@ RUNS = {
     # One's own data (issue 18): the ICL pair written as the demo layout and as loose files, smaller.
     "05_your_data": dict(params={"seed": 1, "n_pairs": 1},
                          knobs={"ransac_iters": 3000, "n_views": 2, "scale": 0.25}),
+    # The appendix with the stub (no DDIM there: its rows do not move with the iterations).
+    "06_appendix": dict(params={"backend": "stub", "seed": 1, "n_pairs": 1},
+                        knobs={"ddim_steps_list": [5, 20], "ransac_iters": 2000}),
 }
 
 

@@ -15,6 +15,7 @@ from pathlib import Path
 SPLIT_JSON = "test_split.json"
 LAYERS_JSON = "test_split_layers.json"
 TUNED_JSON = "fusion/test_split_fpfh0.15_w0.5.json"
+DDIM_JSON = "ddim_iterations_test.json"
 
 
 def _load(name: str) -> dict | None:
@@ -160,4 +161,26 @@ def table2() -> list[str]:
                          f"[{m_row['ci'][0]:.1f}, {m_row['ci'][1]:.1f}] ({_sig(b['p_best_vs_m'])}; the paper's best: "
                          f"row {b['paper']}) -> " + ("(0, 4, 6) is not the best combination here" if b["p_best_vs_m"] < 0.05
                                                      else "a tie within the noise: no evidence against (0, 4, 6)"))
+    return lines
+
+
+def table13() -> list[str]:
+    """Table 13's reading: fewer DDIM iterations, faster features, and what registration gives up."""
+    r = _load(DDIM_JSON)
+    if r is None:
+        return [f"(no committed {DDIM_JSON}: run python -m freereg_lib.training.evaluate_ddim)"]
+    res, lo, hi = r["results"], min(r["steps"]), max(r["steps"])
+    t_lo, t_hi = res[f"{lo} seconds"], res[f"{hi} seconds"]
+    test = r["tests"][f"RR kabsch: {lo} - {hi} iterations"]
+    ci = test["diff_ci"]
+    lines = [_header(r, DDIM_JSON) + f" fused FreeReg, Kabsch-RANSAC (the paper's Table 13 row), "
+             f"DDIM iterations {r['steps']}; made by: {'; '.join(r.get('commands', []))}"]
+    lines += [f"  {s:2d} iterations: RR {_ci(res[f'{s} kabsch']['RR'])}, IR {res[f'{s} kabsch']['IR']['mean']:.1f} %, "
+              f"diffusion half {res[f'{s} seconds']:.2f} s a pair" for s in r["steps"]]
+    lines.append(f"  faster with {lo} iterations: {_ahead(t_hi, t_lo)} here ({t_lo:.2f} s against {t_hi:.2f} s, "
+                 f"x{t_hi / t_lo:.1f}; the paper: 4.7 s against 9.3 s a whole pair, x2.0)")
+    lines.append(f"  RR with {lo} against {hi} iterations: {test['diff']:+.1f} points [{ci[0]:+.1f}, {ci[1]:+.1f}] "
+                 f"({_sig(test['p'])}; the paper: -1.4) -> " + (
+                     "a significant loss here" if test["p"] < 0.05 and test["diff"] < 0 else
+                     "no significant change on these pairs (the interval says how large a change they can rule out)"))
     return lines
