@@ -54,21 +54,21 @@ def torch_one_thread():
     torch.set_num_threads(n)
 
 
-def fusion_key_source(name: str) -> str:
-    """The answer key's solution cell of notebook 03 that defines the function ``name``."""
+def key_source(name: str, stem: str = "03_fusion") -> str:
+    """The answer key's solution cell of notebook ``stem`` that defines the function ``name``."""
     import nbformat
 
-    from freereg_lib.teaching import assignments as A
+    from freereg_lib.teaching import notebooks as N
 
-    nb = nbformat.read(str(NOTEBOOKS / "03_fusion.ipynb"), as_version=4)
+    nb = nbformat.read(str(NOTEBOOKS / f"{stem}.ipynb"), as_version=4)
     for cell in nb.cells:
-        if A._is_solution(cell) and name in A._defined_functions(cell.source):
+        if N._is_solution(cell) and name in N._defined_functions(cell.source):
             return cell.source
     raise KeyError(name)
 
 
-def fusion_student(folder, *sources: str):
-    """A student's ``folder/03_fusion.ipynb`` whose solution cells are ``sources``; its path."""
+def student_notebook(folder, stem: str, *sources: str):
+    """A student's ``folder/<stem>.ipynb`` whose solution cells are ``sources``; its path."""
     import nbformat
 
     nb = nbformat.v4.new_notebook()
@@ -76,7 +76,16 @@ def fusion_student(folder, *sources: str):
         cell = nbformat.v4.new_code_cell(source)
         cell.metadata["tags"] = ["solution"]
         nb.cells.append(cell)
-    folder.mkdir(parents=True)
-    path = folder / "03_fusion.ipynb"
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{stem}.ipynb"
     nbformat.write(nb, str(path))
     return path
+
+
+def fusion_key_source(name: str) -> str:
+    return key_source(name, "03_fusion")
+
+
+def fusion_student(folder, *sources: str):
+    """A student's ``folder/03_fusion.ipynb`` whose solution cells are ``sources``; its path."""
+    return student_notebook(folder, "03_fusion", *sources)

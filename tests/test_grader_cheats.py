@@ -1,90 +1,112 @@
-"""Issue 41: a grade a teacher can trust. Six students try to cheat on ``student_fuse``, one is
-honest; one command grades them all.
+"""Issue 50: answers graded where the library's answer cannot be reached.
 
-The students' solution cells run in a process of their own that only writes answers as data;
-the score is computed in the grading process, which runs no student code. Each cheat:
-(1) forges the grader's records from ``sys.argv`` and calls ``os._exit(0)``; (2) replaces the
-grading module's ``_assert_close`` with a no-op; (3) calls the library's reference after
-``sys.setprofile(None)``; (4) calls it from a thread; (5) executes the answer key's cell, read
-from the project's ``notebooks/``; (6) leaves children behind that called ``setsid()`` (one
-with a clean environment). None scores above 0 on ``student_fuse``, the honest student gets
-20/20, and no process of theirs survives the grading. Where Landlock scopes signals (Linux
-6.12+) a seventh tries to SIGKILL the grading process, which here is pytest itself.
+The solution code runs in a confined process with NumPy and the standard library only:
+``freereg_lib`` is not on its import path and (Landlock) its files cannot be read. The six
+ways of calling the reference that beat the previous grader (issue 50) score 0 on the exercise
+they cheat, written plainly (refused before anything runs: the cell names ``freereg_lib``) and
+disguised (the name spelt in pieces: the import fails in the student's process). So does every
+way of importing the library: directly, through ``importlib``, by path, after editing
+``sys.path`` or ``sys.meta_path``. The honest student gets full marks, the stub 0 with "not
+done", and the process-level cheats of issue 41 still fail: forged answer files, children that
+escape with ``setsid()``, reading the answer key, killing the grader. One grading run covers
+them all (one confined process per student).
 """
 from __future__ import annotations
 
-import json
-import os
-import time
+import shutil
 from pathlib import Path
 
 import pytest
-from conftest import fusion_key_source, fusion_student
+from conftest import key_source, student_notebook
 
-from freereg_lib.teaching import assignments as A
-from freereg_lib.teaching import sandbox
+from freereg_lib.teaching import check, gradebook, grader, sandbox
+from freereg_lib.teaching.notebooks import make
 
-WRONG = """
+ROOT = Path(__file__).resolve().parent.parent
+LANDLOCK = sandbox.landlock_abi() > 0
+PLAIN = "from freereg_lib{package} import {module}\n"
+DISGUISED = "import importlib\n{module} = importlib.import_module('freereg' + '_lib{package}.{module}')\n"
+
+# The six cheats of issue 50: (the exercise, its notebook, the library module it reaches, the cell).
+SIX = {
+    "hook_fuse": ("student_fuse", "03_fusion", "", "features", """
+features.__freereg_graded_reference__ = lambda v: v
 def student_fuse(f_d, f_g, w):
-    return np.zeros((len(f_d), f_d.shape[1] + f_g.shape[1]))
-"""
+    return features.fuse(f_d, f_g, w)
+"""),
+    "hook_matching": ("student_mutual_nn", "03_fusion", ".features", "matching", """
+matching.__freereg_graded_reference__ = lambda v: v
+def student_mutual_nn(fa, fb):
+    return matching.mutual_nn(fa, fb)
+"""),
+    "both_cpu": ("student_mutual_nn", "03_fusion", ".features", "matching", """
+import torch
+def student_mutual_nn(fa, fb):
+    ab, ba = matching._both_cpu(torch.as_tensor(fa, dtype=torch.float32), torch.as_tensor(fb, dtype=torch.float32), 2048)
+    idx_a = np.nonzero(ba[ab] == np.arange(len(ab)))[0]
+    return idx_a, ab[idx_a]
+"""),
+    "meta_path_fuse": ("student_fuse", "03_fusion", "", "features", """
+import sys
+sys.meta_path[:] = [f for f in sys.meta_path if "freereg" not in repr(f)]
+def student_fuse(f_d, f_g, w):
+    return features.fuse(f_d, f_g, w)
+"""),
+    "meta_path_kabsch": ("student_kabsch", "02_geometric_features", ".geometry", "pose", """
+import sys
+sys.meta_path[:] = [f for f in sys.meta_path if "freereg" not in repr(f)]
+def student_kabsch(src, dst):
+    return pose._umeyama(np.asarray(src, float)[None], np.asarray(dst, float)[None], False)[0]
+"""),
+    "match_distances": ("student_inlier_ratio", "00_preliminaries", ".geometry", "metrics", """
+def student_inlier_ratio(uv_image, pts_pc, depth_gt, K_image, T_cam_pc, tau_c=0.3, depth_range=(0.01, 10.0)):
+    dist, evaluable, _ = metrics.match_distances(uv_image, pts_pc, depth_gt, K_image, T_cam_pc, depth_range)
+    return float(np.mean(dist[evaluable] < tau_c)) if evaluable.sum() >= 3 else 0.0
+"""),
+}
+
+FUSE = "def student_fuse(f_d, f_g, w):\n    return features.fuse(f_d, f_g, w)\n"
+PIECES = "LIB = 'freereg' + '_lib'\nROOT = {root!r}\n"
+# Every way of importing the library (student_fuse); all but the first spell its name in pieces.
+IMPORTS = {
+    "direct": "from freereg_lib import features\n" + FUSE,
+    "importlib": DISGUISED.format(package="", module="features") + FUSE,
+    "by_path": PIECES + """
+import importlib.util, sys
+def load(name, path, package=False):
+    spec = importlib.util.spec_from_file_location(name, path, submodule_search_locations=[path.rsplit("/", 1)[0]] if package else None)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+load(LIB, ROOT + "/" + LIB + "/__init__.py", package=True)
+features = load(LIB + ".features", ROOT + "/" + LIB + "/features/__init__.py", package=True)
+""" + FUSE,
+    "sys_path": PIECES + "import sys, importlib\nsys.path.insert(0, ROOT)\nfeatures = importlib.import_module(LIB + '.features')\n" + FUSE,
+    "meta_path": PIECES + """
+import sys, importlib, importlib.abc, importlib.util
+class Finder(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] == LIB:
+            base = ROOT + "/" + name.replace(".", "/")
+            return importlib.util.spec_from_file_location(name, base + "/__init__.py", submodule_search_locations=[base])
+sys.meta_path.insert(0, Finder())
+features = importlib.import_module(LIB + '.features')
+""" + FUSE,
+}
+
 FORGES = """
-import json, os, sys
+import os, sys
 from pathlib import Path
-line = json.dumps({"result": {"score": 20.0, "max": 20.0, "percent": 100.0, "exercises": []}})
-for arg in sys.argv[1:]:
-    for p in [Path(arg), *Path(arg).rglob("*")] if Path(arg).is_dir() else [Path(arg)]:
+for d in [Path(a) for a in sys.argv[1:]] + [Path.cwd().parent / "answers"]:
+    for name in ("student_fuse.npz", "result.json", "grades.csv"):
         try:
-            if p.is_file():
-                with open(p, "a") as f:
-                    f.write(line + "\\n")
+            (d / name).write_text('{"score": 20}')
         except OSError:
             pass
-    try:  # and an answers file of its own making, in every place it might be read from
-        for name in ("student_fuse.npz", "student_fuse.json", "progress.jsonl", "result.json"):
-            for d in (Path(arg), Path(arg) / "answers"):
-                (d / name).write_text(line)
-    except OSError:
-        pass
 def student_fuse(f_d, f_g, w):
     return np.zeros((len(f_d), f_d.shape[1] + f_g.shape[1]))
 os._exit(0)
-"""
-PATCHES_CHECKER = """
-import freereg_lib.teaching.assignments as A
-from freereg_lib.teaching import exercises, grader
-exercises._assert_close = lambda *a, **k: None
-for e in exercises.EXERCISES.values():
-    e.check = lambda got, want: None
-A.grade = grader.grade = lambda *a, **k: {"score": 20.0}
-""" + WRONG
-NO_PROFILE = """
-import sys
-from freereg_lib import features
-def student_fuse(f_d, f_g, w):
-    sys.setprofile(None)
-    return features.fuse(f_d, f_g, w)
-"""
-THREAD = """
-import threading
-from freereg_lib.features import fuse as combine
-def student_fuse(f_d, f_g, w):
-    out = []
-    t = threading.Thread(target=lambda: out.append(combine(f_d, f_g, w)))
-    t.start()
-    t.join()
-    return out[0]
-"""
-RUNS_KEY = """
-import json
-from pathlib import Path
-import freereg_lib
-key = Path(freereg_lib.__file__).resolve().parents[1] / "notebooks" / "03_fusion.ipynb"
-cells = json.loads(key.read_text())["cells"]
-for cell in cells:
-    source = "".join(cell["source"])
-    if "solution" in cell.get("metadata", {}).get("tags", []) and "def student_fuse" in source:
-        exec(source)
 """
 ESCAPES = """
 import os, subprocess, time
@@ -93,81 +115,117 @@ if os.fork() == 0:  # a child in a session of its own, keeping the marker
     time.sleep(300)
     os._exit(0)
 subprocess.Popen(["sleep", "4242"], env={}, start_new_session=True)  # no marker, no session
-""" + WRONG
-
-
+def student_fuse(f_d, f_g, w):
+    return np.zeros((len(f_d), f_d.shape[1] + f_g.shape[1]))
+"""
+READS_KEY = PIECES.format(root=str(ROOT)) + """
+def student_fuse(f_d, f_g, w):
+    raise NotImplementedError("replaced by the key's, if it can be read")
+import json
+cells = json.loads(open(ROOT + "/notebooks/03_fusion.ipynb").read())["cells"]
+for cell in cells:
+    if "solution" in cell.get("metadata", {}).get("tags", []) and "def student_fuse" in "".join(cell["source"]):
+        exec("".join(cell["source"]))
+"""
 KILLS_GRADER = """
 import os, signal
 try:
     os.kill(os.getppid(), signal.SIGKILL)  # the grading process (here: pytest itself)
 except OSError:
     pass
-""" + WRONG
+def student_fuse(f_d, f_g, w):
+    return np.zeros((len(f_d), f_d.shape[1] + f_g.shape[1]))
+"""
 
 
-def _marked() -> list[int]:
-    """Processes that carry a grading marker."""
+def _leftovers() -> list[int]:
+    """Processes that carry a grading marker, or the escaping student's ``sleep 4242``."""
     found = []
     for pid in sandbox._user_pids():
         try:
-            if sandbox.MARKER_ENV.encode() + b"=" in Path(f"/proc/{pid}/environ").read_bytes():
-                found.append(pid)
+            marked = sandbox.MARKER_ENV.encode() + b"=" in Path(f"/proc/{pid}/environ").read_bytes()
+            sleeper = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")[:2] == [b"sleep", b"4242"]
         except OSError:
-            pass
+            continue
+        if marked or sleeper:
+            found.append(pid)
     return found
 
 
-def _sleepers() -> list[int]:
-    """The escaping student's ``sleep 4242``, wherever it is."""
-    found = []
-    for pid in sandbox._user_pids():
-        try:
-            if Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")[:2] == [b"sleep", b"4242"]:
-                found.append(pid)
-        except OSError:
-            pass
-    return found
+@pytest.fixture(scope="module")
+def graded(tmp_path_factory):
+    """Every student of this file, graded in one run: {student: {exercise: result}}, the rows."""
+    room = tmp_path_factory.mktemp("class")
+    for name, (fn, stem, package, module, cell) in SIX.items():
+        student_notebook(room / f"plain_{name}", stem, PLAIN.format(package=package, module=module) + cell)
+        student_notebook(room / f"disguised_{name}", stem, DISGUISED.format(package=package, module=module) + cell)
+    for name, cell in IMPORTS.items():
+        student_notebook(room / f"import_{name}", "03_fusion", cell.replace("{root!r}", repr(str(ROOT))))
+    for name, cell in [("forges", FORGES), ("escapes", ESCAPES), ("reads_key", READS_KEY)] + (
+            [("kills_grader", KILLS_GRADER)] if sandbox.landlock_abi() >= 6 else []):
+        student_notebook(room / name, "03_fusion", cell)
+    shutil.copytree(ROOT / "notebooks", room / "honest", ignore=shutil.ignore_patterns(".*"))
+    make(room / "stub")
+    with pytest.MonkeyPatch.context() as mp:  # no cgroup, even where one could be made: the scan must find all
+        mp.setattr(sandbox, "make_cgroup", lambda token: None)
+        rows = gradebook.grade_all([room], out=room.parent / "grades", timeout=10, limit=120, echo=False)
+    return {r["id"]: {e["exercise"]: e for e in r["exercises"]} for r in rows}, {r["id"]: r for r in rows}
 
 
-def test_six_cheats_score_zero_the_honest_student_full_marks_and_nothing_survives(tmp_path, capsys, monkeypatch):
-    # No cgroup, even where the grader could make one: the scan alone must find every leftover.
-    monkeypatch.setattr(sandbox, "make_cgroup", lambda token: None)
-    mnn = fusion_key_source("student_mutual_nn")
-    students = {
-        "forges": fusion_student(tmp_path / "forges", FORGES),
-        "patches_checker": fusion_student(tmp_path / "patches_checker", PATCHES_CHECKER),
-        "no_profile": fusion_student(tmp_path / "no_profile", NO_PROFILE),
-        "thread": fusion_student(tmp_path / "thread", THREAD),
-        "runs_key": fusion_student(tmp_path / "runs_key", RUNS_KEY),
-        "escapes": fusion_student(tmp_path / "escapes", ESCAPES),
-        "honest": fusion_student(tmp_path / "honest", mnn, fusion_key_source("student_fuse")),
-    }
-    if sandbox.landlock_abi() >= 6:  # Landlock's signal scope (Linux 6.12+): a seventh, who tries to kill the grader
-        students["kills_grader"] = fusion_student(tmp_path / "kills_grader", KILLS_GRADER)
-    report = tmp_path / "scores.json"
-    start = time.time()
-    assert A.main(["grade", *map(str, students.values()), "--json", str(report), "--timeout", "10",
-                   "--limit", "120"]) == 0
-    seconds = time.time() - start
-    out = capsys.readouterr().out
-    results = {Path(r["path"]).parent.name: r for r in json.loads(report.read_text())}
-    assert list(results) == list(students)
-    fuse = {s: next(e for e in r["exercises"] if e["exercise"] == "student_fuse") for s, r in results.items()}
-    print({s: (f["score"], f["status"]) for s, f in fuse.items()}, f"{seconds:.0f} s")
+@pytest.mark.parametrize("form", ["plain", "disguised"])
+@pytest.mark.parametrize("cheat", list(SIX))
+def test_each_cheat_of_issue_50_scores_zero_on_its_exercise(graded, cheat, form):
+    by, rows = graded
+    e = by[f"{form}_{cheat}"][SIX[cheat][0]]
+    assert e["score"] == 0 and rows[f"{form}_{cheat}"]["score"] == 0, e
+    assert check.GRADED_WITH in e["message"], e["message"]
+    if form == "plain":  # refused from its source: nothing of it ran
+        assert e["status"] == "refused" and "imports freereg_lib" in e["message"], e
+    else:  # it ran, and the library was not there
+        assert e["status"] == "missing" and "No module named 'freereg_lib" in e["message"], e
 
-    assert results["honest"]["score"] == results["honest"]["max"] == 20
-    assert fuse["honest"]["status"] == "ok" and results["honest"]["status"] == "graded"
-    for s in students:
-        if s != "honest":
-            assert fuse[s]["score"] == 0, (s, fuse[s])
-            assert results[s]["score"] == 0, (s, results[s]["score"])
-    assert results["forges"]["status"] == "exited" and fuse["forges"]["status"] == "stopped"
-    assert fuse["patches_checker"]["status"] == "failed"
-    for s in ("no_profile", "thread"):
-        assert fuse[s]["status"] == "refused" and "freereg_lib.features.descriptors.fuse" in fuse[s]["message"], fuse[s]
-    if sandbox.landlock_abi():
-        assert results["runs_key"]["confined"] is True
-        assert fuse["runs_key"]["status"] == "missing" and "PermissionError" in fuse["runs_key"]["message"]
-    assert results["escapes"]["leftover_processes_killed"] >= 2
-    assert not _marked() and not _sleepers(), "a student's process survived the grading"
-    assert "Summary" in out and "refused" in out
+
+@pytest.mark.parametrize("way", list(IMPORTS))
+def test_a_solution_importing_the_library_scores_zero_and_is_told_why(graded, way):
+    if way in ("by_path", "sys_path", "meta_path") and not LANDLOCK:
+        pytest.skip("without Landlock the library's files can be read by path (the guide says so)")
+    e = graded[0][f"import_{way}"]["student_fuse"]
+    assert e["score"] == 0 and e["status"] in ("refused", "missing"), e
+    assert check.GRADED_WITH in e["message"], e["message"]
+    expected = {"direct": "imports freereg_lib", "importlib": "No module named 'freereg_lib",
+                "by_path": "PermissionError", "sys_path": "No module named 'freereg_lib",
+                "meta_path": "PermissionError"}[way]
+    assert expected in e["message"], e["message"]
+
+
+def test_the_honest_student_scores_full_marks_and_the_stub_zero_not_done(graded):
+    by, rows = graded
+    assert rows["honest"]["score"] == rows["honest"]["max"] == 60 and rows["honest"]["status"] == "graded"
+    assert all(e["status"] == "ok" for e in by["honest"].values())
+    assert rows["stub"]["score"] == 0 and rows["stub"]["max"] == 60
+    for e in by["stub"].values():
+        assert e["status"] == "not done" and e["message"].startswith("not done"), e
+
+
+def test_forged_answers_escaping_children_and_the_answer_key_get_nothing(graded):
+    by, rows = graded
+    assert by["forges"]["student_fuse"]["score"] == 0 and rows["forges"]["status"] == "exited"
+    assert by["escapes"]["student_fuse"]["score"] == 0
+    assert rows["escapes"]["leftover_processes_killed"] >= 2
+    assert not _leftovers(), "a student's process survived the grading"
+    key = by["reads_key"]["student_fuse"]
+    assert key["score"] == 0
+    if LANDLOCK:
+        assert rows["reads_key"]["confined"] is True and "PermissionError" in key["message"], key
+    if "kills_grader" in rows:  # we are still here: Landlock scoped the signal
+        assert by["kills_grader"]["student_fuse"]["score"] == 0
+
+
+def test_without_landlock_the_import_path_still_holds_no_library(tmp_path):
+    path = student_notebook(tmp_path / "eve", "03_fusion", IMPORTS["importlib"])
+    result = grader.grade(path, grader.prepare(seed=1), timeout=10, limit=60, confine=False)
+    e = next(e for e in result["exercises"] if e["exercise"] == "student_fuse")
+    assert result["confined"] is False
+    assert e["score"] == 0 and "No module named 'freereg_lib" in e["message"], e
+    mnn = student_notebook(tmp_path / "ann", "03_fusion", key_source("student_mutual_nn"))
+    assert grader.grade(mnn, grader.prepare(seed=1), limit=60, confine=False)["score"] == 10

@@ -3,11 +3,9 @@
 * :func:`make` writes a student version of every notebook: each ``solution`` cell keeps its
   functions' signatures and docstrings and gets the body ``raise NotImplementedError("<hint>")``;
   ``check`` cells stay (students run them to test themselves); outputs are stripped.
-* :func:`dist` builds what students receive (a folder or a zip): the library, the environment
-  files and the student notebooks *as* ``notebooks/``, and nothing else: no answer key, no
-  tests, no grader data. The project's own ``notebooks/`` are the answer key and never go out.
-* The rest reads notebooks statically (tags, defined functions, imports) for the grader and
-  for the student's process. Nothing here runs a notebook's code.
+* :func:`fill` puts the key's solutions back into a student version (for the tests).
+* The rest reads notebooks statically (tags, defined functions, the solution code of each
+  exercise) for the grader. Nothing here runs a notebook's code.
 """
 from __future__ import annotations
 
@@ -15,11 +13,8 @@ import ast
 import copy
 import io
 import json
-import pkgutil
 import re
-import shutil
 import tokenize
-import zipfile
 from pathlib import Path
 
 from freereg_lib.teaching.exercises import EXERCISES
@@ -27,7 +22,6 @@ from freereg_lib.teaching.exercises import EXERCISES
 ROOT = Path.cwd()  # the project folder the command runs in (make runs there); never where this file lies
 NOTEBOOKS = ROOT / "notebooks"
 DEFAULT_OUT = ROOT / "assignments" / "student"
-DEFAULT_DIST = ROOT / "assignments" / "handout"
 SOLUTION_TAG = "solution"
 CHECK_TAG = "check"
 METADATA_KEY = "freereg_assignment"
@@ -205,9 +199,9 @@ def _banner(stem: str, functions: list[str]):
                 f"Your exercises in this notebook (code cells tagged `{SOLUTION_TAG}`):\n\n{todo}\n\n"
                 "Replace each `raise NotImplementedError(...)` with your code, keep the function names and "
                 f"signatures, and run the cell tagged `{CHECK_TAG}` just below to test yourself. Your functions "
-                "are graded on their own, with only their arguments, `numpy as np`, this notebook's imports and "
-                "the `freereg_lib` modules to hand; do not use the notebook's variables (`pair`, `cfg`, ...) "
-                "inside them.")
+                "are graded on their own, with only their arguments, NumPy and the standard library: the solution "
+                "cell runs alone (with `numpy as np`), so it must not use `freereg_lib` or the notebook's "
+                "variables (`pair`, `cfg`, ...); import anything else it needs in the cell itself.")
     else:
         text = f"**Student version** of `{stem}`. This notebook has no exercise: read and run it."
     cell = nbformat.v4.new_markdown_cell(text)
@@ -306,41 +300,29 @@ def fill(student, key):
 
 
 # --------------------------------------------------------------------------------------
-# What the student's process needs to load the solution cells.
+# What the grader sends to the student's process.
 
-def _parsed_cells(nb):
-    """The syntax tree of every code cell outside the solution cells that parses."""
+def solution_sources(nb) -> dict[str, str]:
+    """Each exercise function the notebook defines, and the code that defines it: its tagged
+    solution cell (the whole cell, as plain Python), or failing that its last ``def`` in any
+    other code cell. A tagged cell that does not parse still goes (its error is the result)."""
+    found: dict[str, str] = {}
+    for cell in nb.cells:
+        if _is_solution(cell):
+            source = _python(cell.source)
+            names = _defined_functions(cell.source) or re.findall(r"^def\s+(\w+)", cell.source, re.MULTILINE)
+            found.update({n: source for n in names if n in EXERCISES})
     for cell in nb.cells:
         if cell.cell_type != "code" or _is_solution(cell):
             continue
         try:
-            yield ast.parse(_python(cell.source))
+            tree = ast.parse(source := _python(cell.source))
         except SyntaxError:
             continue
-
-
-def _import_statements(nb) -> dict[str, str]:
-    """Every name the notebook's import statements bind (outside solution cells), and the statement."""
-    lazy: dict[str, str] = {}
-    import freereg_lib
-
-    for mod in pkgutil.iter_modules(freereg_lib.__path__):
-        if mod.name not in ("assignments", "teaching"):
-            lazy[mod.name] = f"from freereg_lib import {mod.name}"
-    for tree in _parsed_cells(nb):
-        for node in ast.walk(tree):
-            if isinstance(node, ast.Import):
-                for a in node.names:
-                    name = a.asname or a.name.split(".")[0]
-                    lazy[name] = f"import {a.name}" + (f" as {a.asname}" if a.asname else "")
-            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-                for a in node.names:
-                    if a.name != "*":
-                        lazy[a.asname or a.name] = (f"from {node.module} import {a.name}"
-                                                    + (f" as {a.asname}" if a.asname else ""))
-    return lazy
-
-
+        for node in tree.body:
+            if isinstance(node, ast.FunctionDef) and node.name in EXERCISES and node.name not in found:
+                found[node.name] = ast.get_source_segment(source, node, padded=True)
+    return found
 
 
 def notebooks_in(folder: Path) -> list[Path]:
@@ -355,78 +337,3 @@ def relevant(nb, path: Path) -> list[str]:
     own = [n for n, ex in EXERCISES.items() if ex.notebook == stem]
     defined = {n for c in nb.cells if c.cell_type == "code" for n in _defined_functions(c.source)}
     return own + [n for n in EXERCISES if n in defined and n not in own]
-
-
-# --------------------------------------------------------------------------------------
-# What students receive.
-
-_DIST_SKIP = {"__pycache__", ".ipynb_checkpoints", ".pytest_cache"}
-_STUDENT_README = """# FreeReg companion: student handout
-
-The notebooks in `notebooks/` are the course's student versions: each exercise is a function
-`student_<thing>` in a cell tagged `solution` that raises `NotImplementedError` with a hint.
-Write it there, keep its name and signature, and run the cell tagged `check` below it.
-
-Setup (once): `environment/setup_env.sh` (or `python -m venv .venv` and
-`.venv/bin/python -m pip install -r environment/requirements.txt -e .`), then open the
-notebooks with `.venv/bin/jupyter lab notebooks/`. Everything runs on a CPU.
-
-Hand back your `notebooks/*.ipynb` as your teacher asks. They are graded by calling your
-functions on inputs drawn at grading time; only the functions count, and they must not just
-call the library's own implementation of the exercise.
-"""
-
-
-def dist(out: str | Path = DEFAULT_DIST, notebooks: str | Path = NOTEBOOKS, zip_file: bool = False,
-         root: Path = ROOT) -> Path:
-    """Build the student distribution in folder ``out`` (and ``out.zip`` with ``zip_file``).
-
-    It holds ``freereg_lib/`` (the library the notebooks import), ``environment/``,
-    ``pyproject.toml``, a README for students and the student version of every notebook in
-    ``notebooks/`` (as :func:`make` writes them). Not the project's notebooks (they are the
-    answer key), its tests, its ``assignments/`` folder or anything else. Raises if any
-    notebook in it still holds a solution cell's code (a last check). Returns the folder or zip.
-    """
-    out = Path(out)
-    if out.exists():
-        shutil.rmtree(out)
-    (out / "notebooks").mkdir(parents=True)
-    ignore = shutil.ignore_patterns(*_DIST_SKIP, "*.pyc")
-    shutil.copytree(Path(__file__).resolve().parents[1], out / "freereg_lib", ignore=ignore)
-    shutil.copytree(root / "environment", out / "environment", ignore=ignore)
-    for name in ("pyproject.toml",):
-        shutil.copy2(root / name, out / name)
-    (out / "README.md").write_text(_STUDENT_README)
-    written = make(out / "notebooks", notebooks)
-    keys = {p.name: _read(p) for p in Path(notebooks).glob("*.ipynb")}
-    for path in written:
-        _assert_no_solution(keys[path.name], _read(path), path.name)
-    if not zip_file:
-        return out
-    archive = out.with_suffix(".zip")
-    with zipfile.ZipFile(archive, "w", zipfile.ZIP_DEFLATED) as z:
-        for f in sorted(out.rglob("*")):
-            if f.is_file():
-                z.write(f, Path(out.name) / f.relative_to(out))
-    return archive
-
-
-def _assert_no_solution(key, student, name: str) -> None:
-    """No line of the key's solution bodies (beyond imports and signatures) is in ``student``."""
-    text = json.dumps(student)
-    kept = {ln.strip() for c in key.cells if c.cell_type == "code" and not _is_solution(c)
-            for ln in c.source.splitlines()}
-    for cell in key.cells:
-        if not _is_solution(cell):
-            continue
-        tree = ast.parse(_python(cell.source))
-        lines = cell.source.splitlines()
-        for node in tree.body:
-            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
-                body = node.body[1:] if ast.get_docstring(node) is not None else node.body
-                for stmt in body:
-                    for ln in lines[stmt.lineno - 1: stmt.end_lineno]:
-                        ln = ln.strip()
-                        if len(ln) > 12 and not ln.startswith("#") and ln not in kept \
-                                and json.dumps(ln)[1:-1] in text:
-                            raise AssertionError(f"{name}: solution line {ln!r} in the student version")

@@ -4,11 +4,10 @@
   ``RLIMIT_CPU``, ``RLIMIT_FSIZE`` (largest file written), no core dumps, and a cap on new
   processes.
 * :func:`confine`: Linux Landlock (kernel 5.13+, no privileges needed), also before any
-  student code: reading only Python, its packages, the system's libraries and
-  ``freereg_lib`` (not the project's notebooks, answer keys or anything else of yours),
+  student code: reading only the Python standard library, NumPy and the system's libraries
+  (not ``freereg_lib``, the project's notebooks, answer keys or anything else of yours),
   writing only in the submission's scratch folder, no TCP, and (kernel 6.12+) no signals to
-  processes outside. Where Landlock is missing the grade says so: the student's code could
-  then read your files (an answer key among them).
+  processes outside. Where Landlock is missing the grade says so.
 * :func:`end_all` (in the grader): SIGKILL to the student's process group and session, to its
   cgroup where one could be made, and to every process left that carries the submission's
   marker in its environment, sits in its session or process group, was adopted by the grader
@@ -113,14 +112,6 @@ def confine(read: list[Path], write: list[Path], read_dir_only: list[Path] = ())
 
 # --------------------------------------------------------------------------------------
 # The grader's side.
-
-def guard_grader(on: bool) -> None:
-    """While grading, this process is not dumpable: a process of the same user cannot ptrace it
-    or read its memory (Landlock forbids that already; this covers systems without it)."""
-    if sys.platform.startswith("linux"):
-        with contextlib.suppress(OSError, AttributeError):
-            _libc().prctl(4, int(not on), 0, 0, 0)  # PR_SET_DUMPABLE
-
 
 def subreaper(on: bool) -> None:
     """Orphans of the student's processes are re-parented to this process instead of init."""

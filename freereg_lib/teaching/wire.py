@@ -4,8 +4,8 @@ The student's process writes its answers with :func:`save`; the grader reads the
 :func:`load` (``np.load(allow_pickle=False)``, numeric arrays only, a size cap, a depth cap):
 nothing the student writes is ever executed or unpickled by the grader. Values that travel:
 ``None``, bools, ints, floats (NaN and inf included), strings, tuples, lists, dicts with
-string keys, NumPy arrays and scalars of bool / integer / float dtype, and (grader to
-student only) pandas Series.
+string keys, NumPy arrays and scalars of bool / integer / float dtype. It imports only the
+standard library and NumPy: it runs in the student's process too (see :mod:`.student`).
 """
 from __future__ import annotations
 
@@ -49,34 +49,28 @@ def encode(obj: Any, arrays: dict[str, np.ndarray], depth: int = 0) -> Any:
         if not all(isinstance(k, str) for k in obj):
             raise WireError("dict keys must be strings")
         return {"dict": {k: encode(v, arrays, depth + 1) for k, v in obj.items()}}
-    if type(obj).__name__ == "Series" and type(obj).__module__.startswith("pandas"):
-        return {"series": encode(obj.to_numpy(), arrays), "index": encode(obj.index.to_numpy(), arrays)}
     raise WireError(f"a {type(obj).__name__} is not numbers")
 
 
-def decode(data: Any, arrays: dict[str, np.ndarray], series: bool = False, depth: int = 0) -> Any:
-    """The value :func:`encode` described; ``series`` allows pandas Series (the student's side)."""
+def decode(data: Any, arrays: dict[str, np.ndarray], depth: int = 0) -> Any:
+    """The value :func:`encode` described."""
     if depth > MAX_DEPTH:
         raise WireError("nested too deeply")
     if data is None or isinstance(data, (bool, int, float, str)):
         return data
-    if isinstance(data, dict) and len(data) in (1, 2):
-        (tag, value), *rest = data.items()
-        if tag == "num" and value in ("nan", "inf", "-inf") and not rest:
+    if isinstance(data, dict) and len(data) == 1:
+        (tag, value), = data.items()
+        if tag == "num" and value in ("nan", "inf", "-inf"):
             return float(value)
-        if tag == "nd" and not rest:
+        if tag == "nd":
             if value not in arrays:
                 raise WireError(f"no array {value!r}")
             return arrays[value]
-        if tag in ("tuple", "list") and isinstance(value, list) and not rest:
-            items = [decode(x, arrays, series, depth + 1) for x in value]
+        if tag in ("tuple", "list") and isinstance(value, list):
+            items = [decode(x, arrays, depth + 1) for x in value]
             return tuple(items) if tag == "tuple" else items
-        if tag == "dict" and isinstance(value, dict) and not rest:
-            return {str(k): decode(v, arrays, series, depth + 1) for k, v in value.items()}
-        if tag == "series" and series and rest and rest[0][0] == "index":
-            import pandas as pd
-
-            return pd.Series(decode(value, arrays), index=decode(rest[0][1], arrays))
+        if tag == "dict" and isinstance(value, dict):
+            return {str(k): decode(v, arrays, depth + 1) for k, v in value.items()}
     raise WireError(f"not a value of the format: {str(data)[:80]}")
 
 
@@ -92,7 +86,7 @@ def save(path: str | Path, obj: Any) -> None:
     os.replace(tmp, path)
 
 
-def load(path: str | Path, series: bool = False, max_bytes: int = MAX_BYTES) -> Any:
+def load(path: str | Path, max_bytes: int = MAX_BYTES) -> Any:
     """Read what :func:`save` wrote; :class:`WireError` for anything else (never unpickles)."""
     path = Path(path)
     try:
@@ -116,6 +110,6 @@ def load(path: str | Path, series: bool = False, max_bytes: int = MAX_BYTES) -> 
         if a.dtype.kind not in _KINDS:
             raise WireError(f"{path.name}: array {k} of dtype {a.dtype} is not numbers")
     try:
-        return decode(json.loads(meta.tobytes().decode()), arrays, series)
+        return decode(json.loads(meta.tobytes().decode()), arrays)
     except (UnicodeDecodeError, ValueError, RecursionError) as e:
         raise WireError(f"{path.name}: structure is not JSON of the format ({str(e)[:120]})") from None
