@@ -47,6 +47,7 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+from parity_fixtures import BadFixture, _fmt, format_line, load_case, read_manifest
 
 DEFAULT_DIR = Path(__file__).resolve().parents[1] / "tests" / "fixtures" / "parity"  # a repository tool: it knows the tree
 
@@ -498,14 +499,6 @@ def compare(name: str, got: dict, exp: dict) -> list[tuple[str, float, float]]:
 # --------------------------------------------------------------------------------------
 # The runner.
 
-def load_case(path: Path) -> tuple[dict, dict]:
-    """``(inputs, outputs)`` of one ``.npz`` fixture, keyed without the ``in_`` / ``out_`` prefix."""
-    with np.load(path, allow_pickle=False) as z:
-        ins = {k[3:]: z[k] for k in z.files if k.startswith("in_")}
-        outs = {k[4:]: z[k] for k in z.files if k.startswith("out_")}
-    return ins, outs
-
-
 def check_function(folder: Path, verbose: bool = False) -> dict:
     """Run one function folder: ``{"name", "status": ok | FAIL | skipped, "error", "tol",
     "reason", "cases": [(case, output, error, tol)]}``."""
@@ -515,11 +508,15 @@ def check_function(folder: Path, verbose: bool = False) -> dict:
     if adapter is None:
         return {**res, "status": "skipped", "reason": "no counterpart of this function in the project"}
     cases = sorted(folder.glob("*.npz"))
-    if not cases:
-        return {**res, "status": "skipped", "reason": "no cases"}
+    if not cases:  # a function with no case is not checked: not a pass
+        return {**res, "status": "FAIL", "reason": f"no <case>.npz in {folder}", "error": math.inf}
     worst = -1.0
     for case in cases:
-        ins, outs = load_case(case)
+        try:
+            ins, outs = load_case(case)
+        except BadFixture as exc:
+            res.update(status="FAIL", reason=str(exc), error=math.inf, bad_input=True)
+            continue
         try:
             got = adapter(ins)
         except Skip as exc:
@@ -539,23 +536,6 @@ def check_function(folder: Path, verbose: bool = False) -> dict:
     return res
 
 
-def _fmt(x: float) -> str:
-    if x == 0:
-        return "0"
-    if math.isinf(x):
-        return "inf"
-    return f"{x:.3g}"
-
-
-def format_line(r: dict) -> str:
-    if r["status"] == "skipped":
-        return f"{r['name']}: skipped ({r['reason']})"
-    line = f"{r['name']}: max error {_fmt(r['error'])} (tolerance {_fmt(r['tol'])}) {r['status']}"
-    if r["status"] == "FAIL" and r["reason"]:
-        line += f" [{r['reason']}]"
-    return line
-
-
 def run(directory: str | Path = DEFAULT_DIR, verbose: bool = False, out=None) -> int:
     """Check every function folder of ``directory``; print the lines; return the exit status."""
     out = out or sys.stdout
@@ -563,13 +543,20 @@ def run(directory: str | Path = DEFAULT_DIR, verbose: bool = False, out=None) ->
     if not directory.is_dir():
         print(f"no fixture folder {directory}", file=out)
         return 2
-    manifest = {}
-    if (directory / "manifest.json").is_file():
-        manifest = json.loads((directory / "manifest.json").read_text()).get("functions", {})
+    try:
+        manifest = read_manifest(directory / "manifest.json")
+    except BadFixture as exc:
+        print(exc, file=out)
+        return 2
     folders = sorted((p for p in directory.iterdir() if p.is_dir()), key=lambda p: p.name.lower())
+    if not folders:
+        print(f"no function folder (<function>/<case>.npz) in {directory}: nothing checked", file=out)
+        return 2
+    bad_input = False
     counts = {"ok": 0, "FAIL": 0, "skipped": 0}
     for folder in folders:
         r = check_function(folder, verbose)
+        bad_input |= bool(r.get("bad_input"))
         counts[r["status"]] += 1
         print(format_line(r), file=out)
         if verbose:
@@ -584,7 +571,7 @@ def run(directory: str | Path = DEFAULT_DIR, verbose: bool = False, out=None) ->
         counts["skipped"] += 1
     print(f"{len(folders) + len(missing)} functions: {counts['ok']} ok, {counts['FAIL']} FAIL, "
           f"{counts['skipped']} skipped", file=out)
-    return 1 if counts["FAIL"] else 0
+    return 2 if bad_input else (1 if counts["FAIL"] else 0)  # 2: a fixture file that cannot be read
 
 
 def main(argv=None) -> int:

@@ -518,8 +518,19 @@ def _verdict(res, row, solver, min_inliers, min_ratio, max_scale) -> tuple[bool,
     if res.n_inliers < min_inliers:
         return False, f"too few inliers ({res.n_inliers} < {min_inliers})"
     if ratio < min_ratio:
-        return False, f"inlier ratio {ratio:.0%} below {min_ratio:.0%}"
+        return False, f"inlier ratio {_share(res.n_inliers, row['matches'], min_ratio)} below {min_ratio:.1%}"
     return True, "a pose with enough inliers (a plausibility check, not a proof without ground truth)"
+
+
+def _share(n: int, of: int, cut: float) -> str:
+    """``n / of`` as a percentage with the digits that show it is on its side of ``cut``
+    (25 / 172 = 14.5 % below 15.0 %, not "15% below 15%")."""
+    ratio = n / of if of else 0.0
+    for digits in (1, 2, 3):
+        text = f"{ratio:.{digits}%}"
+        if (float(text[:-1]) / 100 < cut) == (ratio < cut) and text != f"{cut:.{digits}%}":
+            break
+    return f"{text} ({n} / {of})"
 
 
 def _fmt(v, spec: str) -> str:

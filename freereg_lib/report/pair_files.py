@@ -14,12 +14,16 @@ from freereg_lib.geometry import cameras
 
 
 def write_ply(path: str | Path, points: np.ndarray) -> Path:
-    """``points (N, 3)`` as a binary little-endian ``.ply`` (float32 x, y, z)."""
+    """``points (N, 3)`` as a binary little-endian ``.ply``: float64 (``double``) x, y, z for a
+    float64 cloud, float32 (``float``) otherwise. The input's precision is kept because a cloud
+    far from its origin (UTM, thousands of km) loses decimetres in float32 and then fails."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    pts = np.ascontiguousarray(points, dtype="<f4")
-    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(pts)}\nproperty float x\n"
-              "property float y\nproperty float z\nend_header\n")
+    wide = np.asarray(points).dtype == np.float64
+    pts = np.ascontiguousarray(points, dtype="<f8" if wide else "<f4")
+    kind = "double" if wide else "float"
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(pts)}\nproperty {kind} x\n"
+              f"property {kind} y\nproperty {kind} z\nend_header\n")
     path.write_bytes(header.encode() + pts.tobytes())
     return path
 

@@ -1,0 +1,151 @@
+"""Issue 49, red team round 4: each case failed on the code before the fix (a traceback, a
+silent wrong answer, or a message that hid its comparison)."""
+from __future__ import annotations
+
+import io
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from freereg_lib.commands import cli
+from freereg_lib.data.datasets.common import read_points
+from freereg_lib.data.datasets.icl import ICLSample
+from freereg_lib.geometry import pose
+from freereg_lib.pipeline import register as R
+from freereg_lib.report import pair_files as PF
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("r4")
+    pair = PF.downscale_pair(ICLSample().pair(10, 40), 0.25)
+    paths = PF.write_user_files(pair, tmp / "in")
+    K = pair.K_image
+    paths["K"] = [f"{v:.6f}" for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2])]
+    return paths
+
+
+def _argv(files, *more):
+    return ["register", str(files["image"]), str(files["cloud"]), "--K", *files["K"], "--image-depth",
+            str(files["image_depth"]), "--backend", "stub", "--ransac-iters", "200", "--views", "1", *more]
+
+
+def test_write_ply_keeps_float64(tmp_path):
+    utm = np.array([[500_000.123456, 5_400_000.654321, 100.25], [500_001.5, 5_400_002.25, 99.75]])
+    back = read_points(PF.write_ply(tmp_path / "utm.ply", utm))
+    np.testing.assert_array_equal(back, utm)  # float32 lost 0.25 m at 5,400 km
+    small = read_points(PF.write_ply(tmp_path / "f32.ply", utm.astype(np.float32) - 500_000))
+    assert (tmp_path / "f32.ply").read_bytes().count(b"property float ") == 3 and small.shape == (2, 3)
+
+
+def test_out_naming_an_existing_file_stops_before_registering(files, tmp_path, capsys):
+    blocker = tmp_path / "taken"
+    blocker.write_text("mine")
+    for out in (blocker, blocker / "sub"):
+        assert cli.main(_argv(files, "--out", str(out))) == 2
+        captured = capsys.readouterr()
+        assert f"{blocker} is an existing file" in captured.err and "--out" in captured.err
+        assert "backend:" not in captured.out and "Traceback" not in captured.err  # nothing ran
+    assert blocker.read_text() == "mine"
+
+
+@pytest.mark.parametrize("content", [b"", b"<html>404 Not Found</html>", b"PK\x03\x04 cut"],
+                         ids=["empty", "html", "truncated-zip"])
+def test_a_bad_fcgf_checkpoint_is_an_input_error(files, tmp_path, capsys, content):
+    ckpt = tmp_path / "fcgf.pth"
+    ckpt.write_bytes(content)
+    rc = cli.main(_argv(files, "--geometric", "fcgf", "--fcgf-checkpoint", str(ckpt), "--out", str(tmp_path / "o")))
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert err.count("\n") == 1 and f"--fcgf-checkpoint {ckpt}" in err
+    assert not (tmp_path / "o").exists()
+
+
+def _verdict(n_inliers: int, n_matches: int, solver: str = "kabsch") -> str:
+    res = pose.PoseResult(np.eye(4), True, solver, inliers=np.arange(n_inliers), scale=1.0)
+    return R._verdict(res, {"matches": n_matches, "note": ""}, solver, *R.verdict_thresholds(solver))[1]
+
+
+def test_the_verdict_prints_the_numbers_it_compares():
+    assert _verdict(25, 172) == "inlier ratio 14.5% (25 / 172) below 15.0%"  # was "15% below 15%"
+    assert _verdict(1499, 10_000) == "inlier ratio 14.99% (1499 / 10000) below 15.0%"
+    assert _verdict(13, 200, "pnp") == "inlier ratio 6.5% (13 / 200) below 7.0%"
+
+
+# --------------------------------------------------------------------------------------
+# The parity command (tools/parity.py) on bad fixtures: one line naming the file, exit 2.
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tools"))
+import parity  # noqa: E402 - a repository tool beside the library, not in it
+
+GOOD = ROOT / "tests" / "fixtures" / "parity" / "return_uv" / "480x640_8x11.npz"
+
+
+def _parity(directory) -> tuple[int, str]:
+    proc = subprocess.run([sys.executable, str(ROOT / "tools" / "parity.py"), str(directory)], capture_output=True,
+                          text=True, cwd=ROOT)
+    assert "Traceback" not in proc.stderr, proc.stderr
+    return proc.returncode, proc.stdout
+
+
+def _write_bad(path: Path, kind: str) -> None:
+    if kind == "truncated":
+        path.write_bytes(GOOD.read_bytes()[:200])
+    elif kind == "empty":
+        path.write_bytes(b"")
+    elif kind == "text":
+        path.write_text("in_x = [1, 2, 3]\n")
+    elif kind == "object-array":
+        np.savez(path, in_x=np.array([{"a": 1}], dtype=object), out_y=np.zeros(2))
+    elif kind == "directory":
+        path.mkdir()
+
+
+@pytest.mark.parametrize("kind", ["truncated", "empty", "text", "object-array", "directory"])
+def test_parity_names_an_unreadable_fixture_and_exits_2(tmp_path, kind):
+    (tmp_path / "return_uv").mkdir()
+    _write_bad(tmp_path / "return_uv" / "c.npz", kind)
+    rc, out = _parity(tmp_path)
+    lines = out.splitlines()
+    assert rc == 2, out
+    assert lines[0].startswith("return_uv: ") and "FAIL" in lines[0] and str(tmp_path / "return_uv" / "c.npz") in lines[0]
+    assert lines[-1] == "1 functions: 0 ok, 1 FAIL, 0 skipped"
+
+
+@pytest.mark.parametrize("text", ["{not json", "[1, 2]", '{"functions": [1]}', "\xff\xfe"])
+def test_parity_names_a_malformed_manifest_and_exits_2(tmp_path, text):
+    shutil.copytree(GOOD.parent, tmp_path / "return_uv")
+    (tmp_path / "manifest.json").write_bytes(text.encode("latin-1"))
+    rc, out = _parity(tmp_path)
+    assert rc == 2 and out.count("\n") == 1 and f"{tmp_path / 'manifest.json'}: not a fixture manifest" in out, out
+
+
+@pytest.mark.parametrize("rename", [lambda k: k.replace("out_", "OUT_"), lambda k: k if k.startswith("in_") else None],
+                         ids=["misspelt-OUT_", "no-out-arrays"])
+def test_parity_fails_a_case_with_nothing_to_compare_even_when_the_function_is_wrong(tmp_path, rename, monkeypatch):
+    (tmp_path / "return_uv").mkdir()
+    with np.load(GOOD) as z:
+        arrays = {rename(k): z[k] for k in z.files if rename(k)}
+    np.savez(tmp_path / "return_uv" / "c.npz", **arrays)
+    monkeypatch.setitem(parity.ADAPTERS, "return_uv", lambda i: {"uv": np.zeros(3)})  # the project made wrong
+    buf = io.StringIO()
+    rc = parity.run(tmp_path, out=buf)
+    lines = buf.getvalue().splitlines()
+    assert rc == 2 and lines[0].startswith("return_uv: ") and lines[0].endswith("]") and "FAIL" in lines[0], lines
+    assert ("OUT_" in lines[0]) if "OUT" in str(list(arrays)) else ("no out_<name> array" in lines[0])
+
+
+def test_parity_fails_a_function_with_no_case_and_a_folder_with_no_function(tmp_path):
+    (tmp_path / "return_uv").mkdir()
+    rc, out = _parity(tmp_path)
+    assert rc == 1 and out.splitlines()[0] == f"return_uv: max error inf (tolerance 0) FAIL [no <case>.npz in " \
+                                              f"{tmp_path / 'return_uv'}]", out
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    rc, out = _parity(empty)
+    assert rc == 2 and out == f"no function folder (<function>/<case>.npz) in {empty}: nothing checked\n"
