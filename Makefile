@@ -13,11 +13,11 @@ RUN ?= runs/reproduce
 reproduce: .venv/.installed
 	$(PY) -m freereg_lib reproduce --out $(RUN)
 
-# The executed notebooks of $(RUN), the pages of docs/ and an API reference from the docstrings as one
-# static HTML site, $(RUN)/site/index.html (freereg_lib/commands/site.py: nbconvert for the notebooks, its markdown
-# renderer for docs/, the source read with ast for the API).
+# The executed notebooks of $(RUN), the pages of docs/ and the API reference of the method as one static
+# site, $(RUN)/site/index.html: Sphinx + myst-nb + sphinx-book-theme (book/conf.py), offline, nitpicky,
+# warnings as errors (freereg_lib/commands/book.py lays out the sources).
 book: .venv/.installed
-	$(PY) -m freereg_lib.commands.site $(RUN)
+	$(PY) -m freereg_lib.commands.book $(RUN)
 
 # Two pytest workers (pytest-xdist), a test file or notebook each at a time: many tests wait on
 # kernels and subprocesses, so two keep both cores busy. nbmake's 300 s cell limit is for one

@@ -4,8 +4,8 @@
   :mod:`.inputs_check` (the user's files read and checked: bad input is one clear line);
 * :mod:`.batch` (with :mod:`.batch_rows`, :mod:`.batch_files`, :mod:`.cache`) and :mod:`.cluster`:
   many pairs, resumable, on a machine or a Dask cluster;
-* :mod:`.reproduce`: the notebooks run into one folder, then the site; :mod:`.site`,
-  :mod:`.site_docs`: the static site;
+* :mod:`.reproduce`: the notebooks run into one folder, then the book; :mod:`.book`: the book
+  (Sphinx, ``book/conf.py``); :mod:`.gallery`: the README's gallery;
 * :mod:`.check_weights`: are the real weights where the real backend looks;
 * :mod:`.parity`, :mod:`.real_frames`, :mod:`.verdict_measure`: measurements against the
   official code's fixtures and real frames.

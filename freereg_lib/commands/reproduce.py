@@ -3,8 +3,9 @@
 With the notebooks present it executes all five with papermill on their defaults
 (synthetic scenes; the micro models in 01, 03 and 04, the stub elsewhere) into a run folder, then prints where the executed
 notebooks, figures and tables are, and the benchmark's table beside the paper's. Then it renders the
-executed notebooks as a static site (``<out>/site/index.html``, :mod:`freereg_lib.commands.site`) and rewrites
-the README's gallery (``figures/gallery/``) from the figures of the run; ``--no-book`` skips both.
+executed notebooks as a book (``<out>/site/index.html``, :mod:`freereg_lib.commands.book`) and rewrites
+the README's gallery (``figures/gallery/``, :mod:`freereg_lib.commands.gallery`) from the figures of the run;
+``--no-book`` skips both.
 ``--quick`` skips the notebooks and registers a handful of synthetic pairs directly.
 """
 from __future__ import annotations
@@ -80,23 +81,24 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out).resolve()
     failed = notebooks(out, args.seed)
     if not args.no_book:
-        from freereg_lib.commands.site import SiteError
+        from freereg_lib.commands.book import BookError
 
         try:
             book(out)
-        except SiteError as exc:
-            print(f"site: {exc}", file=sys.stderr)
+        except BookError as exc:
+            print(f"book: {exc}", file=sys.stderr)
             return 1
     return 1 if failed else 0
 
 
 def book(out: Path) -> None:
-    """The site of the run (``out/site``) and the README's gallery, from the figures of the run."""
-    from freereg_lib.commands import site
+    """The book of the run (``out/site``) and the README's gallery, from the figures of the run."""
+    from freereg_lib.commands.book import build_book
+    from freereg_lib.commands.gallery import write_gallery
 
-    index = site.build_site(out, figures_dir=ROOT / "figures")
+    index = build_book(out, figures_dir=ROOT / "figures")
     print(f"\nSite:               {index}")
-    written = site.write_gallery(ROOT / "figures")
+    written = write_gallery(ROOT / "figures")
     print("Gallery (README):   " + ", ".join(f"{p.name} ({p.stat().st_size // 1024} KB)" for p in written))
 
 
