@@ -12,11 +12,14 @@ import numpy as np
 import pytest
 
 from freereg_lib.commands import cli
+from freereg_lib.data import synthetic
 from freereg_lib.data.datasets.common import read_points
 from freereg_lib.data.datasets.icl import ICLSample
 from freereg_lib.geometry import pose
 from freereg_lib.pipeline import register as R
 from freereg_lib.report import pair_files as PF
+from freereg_lib.training import evaluate_depth as ED
+from freereg_lib.training import evaluate_split as ES
 
 
 @pytest.fixture(scope="module")
@@ -149,3 +152,48 @@ def test_parity_fails_a_function_with_no_case_and_a_folder_with_no_function(tmp_
     empty.mkdir()
     rc, out = _parity(empty)
     assert rc == 2 and out == f"no function folder (<function>/<case>.npz) in {empty}: nothing checked\n"
+
+
+# --------------------------------------------------------------------------------------
+# The evaluation commands: one line naming the argument, exit 2, before any work.
+
+def _exits_2(main, argv, capsys) -> str:
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "Traceback" not in err, err
+    return err.strip().splitlines()[-1]
+
+
+@pytest.mark.parametrize("argv, says", [(["--pairs", "0"], "--pairs must be >= 1, got 0"),
+                                        (["--seed", "-1"], "--seed must be >= 0"),
+                                        (["--boot", "0"], "--boot must be >= 1")])
+def test_evaluate_depth_refuses_bad_values(argv, says, capsys):
+    assert says in _exits_2(ED.main, argv + ["--no-card", "--figure", ""], capsys)
+
+
+def test_evaluate_depth_figure_draws_one_pair(tmp_path):
+    pair = synthetic.make_pair("indoor", seed=3, image_size=(48, 64))
+    preds = {"micro": [pair.depth_gt * 1.1], "stub": [pair.depth_gt * 0.9]}
+    ED.plot_figure([pair], preds, tmp_path / "one.png")  # was an IndexError after the evaluation ran
+    assert (tmp_path / "one.png").stat().st_size > 1000
+
+
+def test_evaluate_split_summarize_names_a_missing_or_malformed_rows_file(tmp_path, capsys):
+    missing = tmp_path / "none.jsonl"
+    assert f"--rows {missing}: cannot read it" in _exits_2(ES.main, ["--summarize", "--rows", str(missing)], capsys)
+    bad = tmp_path / "bad.jsonl"
+    bad.write_text('{"k": 0, "rows": []}\n{"k": 1, "rows": [\n')
+    assert f"--rows {bad}, line 2: not a row" in _exits_2(ES.main, ["--summarize", "--rows", str(bad)], capsys)
+    bad.write_text('{"rows": []}\n')
+    assert f"--rows {bad}, line 1" in _exits_2(ES.main, ["--summarize", "--rows", str(bad)], capsys)
+    bad.write_text('{"k": 3, "rows": []}\n')
+    assert "no row of pair k = 0" in _exits_2(ES.main, ["--summarize", "--rows", str(bad)], capsys)
+
+
+@pytest.mark.parametrize("shard, says", [("a/b", "expected i/n, two integers"), ("3/2", "expected 0 <= i < n"),
+                                         ("0/0", "expected 0 <= i < n"), ("1", "expected i/n")])
+def test_evaluate_split_refuses_a_shard_that_runs_nothing(shard, says, tmp_path, capsys):
+    rows = tmp_path / "rows.jsonl"
+    assert f"--shard {shard}: {says}" in _exits_2(ES.main, ["--shard", shard, "--rows", str(rows)], capsys)
+    assert not rows.exists()

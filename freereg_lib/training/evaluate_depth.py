@@ -42,7 +42,14 @@ def parse_args(argv=None):
     p.add_argument("--boot", type=int, default=2000)
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--no-card", action="store_true", help="do not rewrite eval.json / MODEL_CARD.md")
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    # Checked here, before minutes of rendering: a bad value stops with one line, exit 2.
+    for flag, value in (("--pairs", args.pairs), ("--boot", args.boot), ("--threads", args.threads)):
+        if value < 1:
+            p.error(f"{flag} must be >= 1, got {value}")
+    if args.seed < 0:
+        p.error(f"--seed must be >= 0 (pair seeds are seed * 1000003 + k), got {args.seed}")
+    return args
 
 
 def edge_mask(D: np.ndarray) -> np.ndarray:
@@ -103,13 +110,16 @@ def summarise(stats: list[dict], boot: int, seed: int = 0) -> dict:
     }
 
 
-def plot_figure(pairs, preds: dict, path: Path, picks=(0, 1)) -> None:
+def plot_figure(pairs, preds: dict, path: Path, picks=None) -> None:
+    """Rows of image, true depth and each prediction for ``picks`` (default: the first two pairs,
+    or the one there is)."""
+    picks = tuple(range(min(2, len(pairs)))) if picks is None else tuple(picks)
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(len(picks), 5, figsize=(15, 2.6 * len(picks)), dpi=64)
+    fig, axes = plt.subplots(len(picks), 5, figsize=(15, 2.6 * len(picks)), dpi=64, squeeze=False)
     for r, i in enumerate(picks):
         D = pairs[i].depth_gt
         v = D > 0

@@ -73,7 +73,7 @@ def run(split_name: str, n_pairs: int, rows_path: Path, shard: str = "0/1", weig
     from freereg_lib.models import get_backend
 
     split = SPLITS[split_name]
-    i, n = (int(x) for x in shard.split("/"))
+    i, n = parse_shard(shard)
     cfg = FreeRegConfig(seed=split.noise_seed)
     backend = get_backend("micro", cfg, device="cpu", weights_dir=weights_dir)
     done = _done(rows_path)
@@ -106,19 +106,48 @@ def _plain(v):
     return v
 
 
+class RowsError(ValueError):
+    """A rows file that cannot be summarized; the message is one line naming it."""
+
+
 def load_rows(rows_paths) -> list[dict]:
     """The per-pair records (of one or more row files, e.g. one per shard) of the longest complete
-    prefix ``k = 0 .. n-1``, one record per pair."""
+    prefix ``k = 0 .. n-1``, one record per pair. A missing file, a line that is not a JSON
+    record with an integer ``k`` raises :class:`RowsError` naming it; ``[]`` without pair 0."""
     recs = {}
     for path in [rows_paths] if isinstance(rows_paths, (str, Path)) else rows_paths:
-        for line in Path(path).read_text().splitlines():
-            if line.strip():
+        try:
+            lines = Path(path).read_text().splitlines()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise RowsError(f"--rows {path}: cannot read it ({type(exc).__name__}: {exc.strerror or exc})") from None
+        for no, line in enumerate(lines, 1):
+            if not line.strip():
+                continue
+            try:
                 r = json.loads(line)
-                recs.setdefault(r["k"], r)
+                k = r["k"]
+                if not isinstance(k, int) or isinstance(k, bool):
+                    raise TypeError(f"'k' is {k!r}, not an integer")
+            except (ValueError, KeyError, TypeError) as exc:
+                raise RowsError(f"--rows {path}, line {no}: not a row of evaluate_split (a JSON object with an "
+                                f"integer 'k'): {type(exc).__name__}: {' '.join(str(exc).split())[:100]}") from None
+            recs.setdefault(k, r)
     n = 0
     while n in recs:
         n += 1
     return [recs[k] for k in range(n)]
+
+
+def parse_shard(shard: str) -> tuple[int, int]:
+    """``(i, n)`` of ``--shard i/n`` (``0 <= i < n``); ``ValueError`` naming it otherwise (``3/2`` ran
+    no pair and said nothing)."""
+    try:
+        i, n = (int(x) for x in str(shard).split("/"))
+    except ValueError:
+        raise ValueError(f"--shard {shard}: expected i/n, two integers (e.g. 0/2)") from None
+    if not 0 <= i < n:
+        raise ValueError(f"--shard {shard}: expected 0 <= i < n (shard i of n), got i = {i}, n = {n}")
+    return i, n
 
 
 def _stat(v) -> dict:
@@ -214,11 +243,20 @@ def main(argv=None) -> int:
                    help="(with --summarize) a command line that produced the rows, recorded in the JSON")
     args = p.parse_args(argv)
     split = SPLITS[args.split]
+    try:  # bad values stop here with one line (exit 2), before any pair runs
+        parse_shard(args.shard)
+        if args.pairs is not None and args.pairs < 1:
+            raise ValueError(f"--pairs must be >= 1, got {args.pairs}")
+        recs = load_rows(args.rows) if args.summarize else None
+        if args.summarize and not recs:
+            raise ValueError(f"--rows {' '.join(args.rows)}: no row of pair k = 0, no complete prefix to summarize")
+    except ValueError as exc:
+        p.error(str(exc))
     if not args.summarize:
         run(args.split, args.pairs or split.n_pairs, Path(args.rows[0]), args.shard, args.weights,
             cache=Path(args.cache) if args.cache else None)
         return 0
-    res = summarize(load_rows(args.rows), args.split)
+    res = summarize(recs, args.split)
     res["commands"] = args.run_command + [
         f"python -m freereg_lib.training.evaluate_split --split {args.split} --summarize --rows {' '.join(args.rows)}"
         + (f" --out {args.out}" if args.out else "")]
