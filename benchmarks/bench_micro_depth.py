@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Time per 480 x 640 image of the micro monocular depth (issue 15).
+"""Time per 480 x 640 image of the micro monocular depth.
 
     python benchmarks/bench_micro_depth.py [--images 4] [--reps 3] [--threads 1]
 

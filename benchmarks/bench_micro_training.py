@@ -1,6 +1,6 @@
 #!/usr/bin/env python
 """Seconds per training step of each micro diffusion stage on this machine, and what the
-committed schedule (``freereg_lib.training.retrain``) costs at those rates (issue 14).
+committed schedule (``freereg_lib.training.retrain``) costs at those rates.
 
     python benchmarks/bench_micro_training.py [--rooms 20] [--steps 10] [--threads 2]
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Where the time and memory of one FreeReg pair go, stage by stage (issue 7).
+"""Where the time and memory of one FreeReg pair go, stage by stage.
 
     python benchmarks/bench_pipeline.py [--mode cpu|gpu|ci] [--pairs N] [--reps R]
                                         [--threads T] [--json PATH]
@@ -19,8 +19,8 @@ Modes
          meaningless features, so the solvers there run all their iterations: a worst case.
     micro The whole chain with the ``micro`` backend (the models trained here: diffusion and
          monocular depth) on synthetic indoor pairs of 480 x 640 with FPFH (and with a micro
-         FCGF when one is in the package), both solvers at 50k iterations: issue 15's "one
-         micro FreeReg pair" on this machine.
+         FCGF when one is in the package), both solvers at 50k iterations: "one micro FreeReg pair"
+         on this machine.
     ci   Tiny sizes (a 96 x 128 pair, 500 RANSAC iterations, a 64 x 64 tiny backend with 5
          DDIM steps, 1k x 1k matching), one repetition, torch on one thread: a check that
          the script works, in seconds. Its numbers mean nothing.

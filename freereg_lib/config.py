@@ -1,7 +1,7 @@
 """The one config object: every hyper-parameter of FreeReg with the paper's defaults.
 
-Values come from the paper (ICLR 2024) and the official code, as listed in
-``shared/paper/FACTS.md``. Notebooks override fields through papermill parameters with
+Values come from the paper (ICLR 2024) and the official code (WHU-USI3DV/FreeReg; docs/fidelity.md
+says what is verified against it). Notebooks override fields through papermill parameters with
 :func:`dataclasses.replace` or :meth:`FreeRegConfig.override`.
 """
 from __future__ import annotations

@@ -1,16 +1,16 @@
-"""Course assignments (issues 6, 41, 50): student versions of the notebooks, the handout and the grader.
+"""Course assignments: student versions of the notebooks, the handout and the grader.
 
 * ``make`` writes student notebooks that hold no solution code: every ``solution`` cell keeps
   its functions' signatures and docstrings and raises ``NotImplementedError`` with a hint; the
   ``check`` cells and everything else stay; outputs are stripped.
-* The autograder (issue 41: the solution cells run in a student process of their own, the
+* The autograder (the solution cells run in a student process of their own, the
   score is computed in the grading process) gives the answer key (the notebooks themselves)
   full marks, the untouched student version zero, and partial, broken, looping or exiting work
   its due without crashing.
 * ``dist`` hands out the student notebooks and the part of the library they import, never the
   answer key or the grader; an unfilled notebook runs from the handout alone.
 * A student notebook filled from the key runs top to bottom with papermill; left unfilled it
-  also reaches its last cell, each unsolved exercise's check saying so (issue 17).
+  also reaches its last cell, each unsolved exercise's check saying so.
 """
 from __future__ import annotations
 
@@ -379,7 +379,7 @@ def test_student_notebook_filled_from_the_key_runs_top_to_bottom(student_dir, tm
 
 def test_unfilled_student_notebook_runs_to_its_last_cell(unfilled_run):
     """Run All on the untouched student version reaches the end: each unsolved exercise's check
-    cell says so in one printed line and the notebook goes on (issue 17, item 8)."""
+    cell says so in one printed line and the notebook goes on."""
     proc, executed = unfilled_run
     log, _ = proc.communicate(timeout=600)
     assert proc.returncode == 0, log[-3000:]

@@ -1,4 +1,4 @@
-"""Issues 16, 41 and 50: the grader survives its students, and trusts nothing they write.
+"""The grader survives its students, and trusts nothing they write.
 
 Each student is graded in a process of their own with a hard time limit, memory and output
 limits; a student who hangs (catching the time-out), exits, floods the output or exhausts

@@ -1,4 +1,4 @@
-"""Issue 40, ranges: every numeric setting has a range declared beside its default, and the one
+"""Ranges: every numeric setting has a range declared beside its default, and the one
 check (freereg_lib.config.range_problem) runs in FreeRegConfig / config_for, in the notebooks'
 parameter check and in the batch grid check; a grid with a duplicate key is refused naming it."""
 import dataclasses

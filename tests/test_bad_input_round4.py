@@ -1,4 +1,4 @@
-"""Issue 49, red team round 4: each case failed on the code before the fix (a traceback, a
+"""Red team, fourth pass: each case failed on the code before the fix (a traceback, a
 silent wrong answer, or a message that hid its comparison)."""
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The position-only baseline row of Table 1 (issue 38): matches from pixel positions alone,
+"""The position-only baseline row of Table 1: matches from pixel positions alone,
 the same solvers and scores, and verdict lines that say when a method does not beat it."""
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Issue 19: the batch runner's jobs through Dask distributed (``--executor dask``).
+"""The batch runner's jobs through Dask distributed (``--executor dask``).
 
 A local cluster of two worker processes runs a 2 x 2 grid of ``tests/fixtures/batch_fixture.ipynb``
 (about a second a job); one worker is killed mid-job and one kernel too, and the table must be the

@@ -1,4 +1,4 @@
-"""Issue 16: a fault in a batch run never becomes a result.
+"""A fault in a batch run never becomes a result.
 
 Wrong-typed grid values, configuration errors, YAML errors, OS errors, names that leave the
 runs folder, truncated or cut ``pairs.csv`` given to ``merge``, a changed library, and runs

@@ -1,4 +1,4 @@
-"""Issue 40: a batch run folder is locked by its runner; a second runner says so in one line and
+"""A batch run folder is locked by its runner; a second runner says so in one line and
 stops (exit 2) instead of executing every job a second time."""
 import subprocess
 import sys

@@ -1,4 +1,4 @@
-"""Batched diffusion features (issue 7): several pairs per model call, the UNet stopped after
+"""Batched diffusion features: several pairs per model call, the UNet stopped after
 the last chosen layer, and a pipeline whose rows do not depend on the batch size."""
 from __future__ import annotations
 

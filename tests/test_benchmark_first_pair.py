@@ -1,5 +1,5 @@
 """Notebook 04 draws its sample figure from the first readable pair: an unreadable first pair
-is a failed row of the benchmark, not a failed notebook (issue 16)."""
+is a failed row of the benchmark, not a failed notebook."""
 from pathlib import Path
 
 import papermill

@@ -1,4 +1,4 @@
-"""Issue 16: the feature cache never serves a stale or corrupt entry.
+"""The feature cache never serves a stale or corrupt entry.
 
 The key holds the backend's full identity (kind, settings, dtype, device, weights folder and
 files, library and backend code); each entry stores its key; a corrupt entry is reported

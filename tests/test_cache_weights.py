@@ -1,4 +1,4 @@
-"""Issue 40: the feature cache knows its weights, committed weights carry checksums, and unusable
+"""The feature cache knows its weights, committed weights carry checksums, and unusable
 checkpoint / weight files give an error naming the file and what was expected.
 
 * the cache key holds the SHA-256 of every weight file (memoised by path, size, inode and change

@@ -1,7 +1,7 @@
 """Data entering the library: real-data quirks are fixed where the files are read, and files or
 pairs that would give silently wrong numbers are refused with a message naming the file or field.
 
-Each case is one a new user met on real data (issue 13): 7-Scenes / 3DMatch pose files that are
+Each case is one a new user met on real data: 7-Scenes / 3DMatch pose files that are
 orthonormal only to ~3e-4 and depth PNGs that mark "no measurement" with 65535; normalised or
 other-resolution intrinsics; depth or translations in millimetres; transposed pose files;
 overlaps in percent; truncated JPEGs; a misspelt key in the demo's intrinsics.json; depth_size

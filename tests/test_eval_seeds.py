@@ -1,4 +1,4 @@
-"""No evaluation seed may reproduce a micro model's training room (issue 43).
+"""No evaluation seed may reproduce a micro model's training room.
 
 NumPy splits an integer seed into 32-bit little-endian words, so the integer
 ``TRAIN_ROOMS + k * 2**32`` is the seed sequence ``(TRAIN_ROOMS, k)`` of training room ``k``. The

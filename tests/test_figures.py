@@ -1,4 +1,4 @@
-"""Figures a reader can read at their natural size (issue 17, item 6): ``plots.save`` writes PNGs
+"""Figures a reader can read at their natural size: ``plots.save`` writes PNGs
 at most ``plots.MAX_WIDTH_PX`` wide and ``plots.MAX_BYTES`` large, whatever the figure's size, and
 the layouts keep metric axes in % and depth panels with a colour bar in metres."""
 from __future__ import annotations

@@ -1,13 +1,13 @@
-"""Issue 50: answers graded where the library's answer cannot be reached.
+"""Answers graded where the library's answer cannot be reached.
 
 The solution code runs in a confined process with NumPy and the standard library only:
 ``freereg_lib`` is not on its import path and (Landlock) its files cannot be read. The six
-ways of calling the reference that beat the previous grader (issue 50) score 0 on the exercise
+ways of calling the reference that beat the previous grader score 0 on the exercise
 they cheat, written plainly (refused before anything runs: the cell names ``freereg_lib``) and
 disguised (the name spelt in pieces: the import fails in the student's process). So does every
 way of importing the library: directly, through ``importlib``, by path, after editing
 ``sys.path`` or ``sys.meta_path``. The honest student gets full marks, the stub 0 with "not
-done", and the process-level cheats of issue 41 still fail: forged answer files, children that
+done", and the process-level cheats still fail: forged answer files, children that
 escape with ``setsid()``, reading the answer key, killing the grader. One grading run covers
 them all (one confined process per student).
 """
@@ -27,7 +27,7 @@ LANDLOCK = sandbox.landlock_abi() > 0
 PLAIN = "from freereg_lib{package} import {module}\n"
 DISGUISED = "import importlib\n{module} = importlib.import_module('freereg' + '_lib{package}.{module}')\n"
 
-# The six cheats of issue 50: (the exercise, its notebook, the library module it reaches, the cell).
+# The six cheats: (the exercise, its notebook, the library module it reaches, the cell).
 SIX = {
     "hook_fuse": ("student_fuse", "03_fusion", "", "features", """
 features.__freereg_graded_reference__ = lambda v: v

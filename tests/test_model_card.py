@@ -1,4 +1,4 @@
-"""The micro models' card is regenerated from the committed JSON, byte for byte (issue 43)."""
+"""The micro models' card is regenerated from the committed JSON, byte for byte."""
 import shutil
 from pathlib import Path
 

@@ -41,7 +41,7 @@ ALL = sorted(set(EXPECTED) | {p.name for p in NOTEBOOKS.glob("*.ipynb")})
 COMMON_PARAMS = ("backend", "dataset", "n_pairs", "seed", "device", "out_dir", "figures_dir")
 METRIC_COLUMNS = ("FMR", "IR", "IN", "RR")
 
-# Non-default runs (issue 4): another seed and fewer pairs everywhere, the tiny backend for 01,
+# Non-default runs: another seed and fewer pairs everywhere, the tiny backend for 01,
 # the stub instead of the default micro backend for 02, 03 and 04 (nbmake runs their defaults), the
 # embedded ICL frames for 02 and 04. ``knobs`` only shorten a run and are passed only when
 # the notebook declares them; ``params`` must all be declared.
@@ -70,12 +70,12 @@ RUNS = {
         knobs={"ransac_iters": 5000, "n_failure_cases": 1},
     ),
     # The official demo's layout (written by the test: a rendered room, its own cameras), as
-    # dataset="demo": config_for("demo") and the loader through the notebook (issue 13).
+    # dataset="demo": config_for("demo") and the loader through the notebook.
     "04_benchmark-demo": dict(
         params={"backend": "stub", "dataset": "demo", "data_root": "<tmp>/demo", "seed": 1, "n_pairs": 1},
         knobs={"ransac_iters": 5000, "n_failure_cases": 1}, setup="demo",
     ),
-    # One's own data (issue 18): the ICL pair written as the demo layout and as loose files, smaller.
+    # One's own data: the ICL pair written as the demo layout and as loose files, smaller.
     "05_your_data": dict(params={"seed": 1, "n_pairs": 1},
                          knobs={"ransac_iters": 3000, "n_views": 2, "scale": 0.25}),
     # The appendix with the stub (no DDIM there: its rows do not move with the iterations).

@@ -1,5 +1,5 @@
 """The depth handling, solvers and evaluation of the pipeline pinned to the official code
-(shared/paper/FACTS.md, "What the official code does"), each on a small hand-made case."""
+(WHU-USI3DV/FreeReg; docs/fidelity.md), each on a small hand-made case."""
 import numpy as np
 import pytest
 from conftest import outlier_problem

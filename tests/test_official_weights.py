@@ -1,4 +1,4 @@
-"""The real backend loads what the official code loads (issue 12, items 1-3 and 11): the exact
+"""The real backend loads what the official code loads: the exact
 conditional text, the NON-EMA SD v1.5 UNet, float32 everywhere (CUDA too), the ControlNet
 v1.1 depth by default and the fine-tuned single-file checkpoint when given; and the weight
 check command runs on the demo layout. Model loading is faked: these tests need no weights."""

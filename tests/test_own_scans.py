@@ -1,4 +1,4 @@
-"""Your own scans through ``freereg register`` get the pipeline's setting (issue 49).
+"""Your own scans through ``freereg register`` get the pipeline's setting.
 
 Cases built from the shipped ICL frames (half size): the colour image of frame ``i`` against
 (a) a cloud from frame ``j``'s depth in that sensor's frame (``--depth-pose identity``) and

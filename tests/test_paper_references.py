@@ -4,7 +4,7 @@ the right number for what it shows.
 ``FIGURES`` / ``TABLES`` / ``SECTIONS`` below are the paper's floats in LaTeX order (FreeReg, ICLR
 2024: 10 figures and 13 tables, the appendix continuing the numbering), each with its label in the
 LaTeX, what it shows, its panels and the words that name its subject. When the paper's text is on
-disk (``../shared/paper/freereg_iclr2024.tex.txt``) the tables are checked against it.
+disk (``PAPER_TEX``, beside the repository) the tables are checked against it.
 
 The scan covers the text a reader sees: the notebooks' cell sources (not outputs), the READMEs,
 ``freereg_lib``'s Python files (docstrings, comments, strings: plot titles, messages) and its data
@@ -40,7 +40,7 @@ class Float:
     panels: str = ""    # panel letters, "" when it has none
 
 
-# The paper's floats, from ../shared/paper/FACTS.md ("Figure and table numbers") and the LaTeX.
+# The paper's floats, from its figure and table numbers and the LaTeX.
 FIGURES = {
     1: Float("fig:teaser", "teaser", (r"teaser",)),
     2: Float("fig:solution", "the idea in four panels (I-IV)", (r"four panels", r"\bi-iv\b", r"idea")),
@@ -242,7 +242,7 @@ def test_the_scan_accepts_right_references(text):
     assert find_problems("example", text) == []
 
 
-@pytest.mark.skipif(not PAPER_TEX.is_file(), reason="the paper's LaTeX is not on disk (../shared/paper)")
+@pytest.mark.skipif(not PAPER_TEX.is_file(), reason="the paper's LaTeX is not on disk (PAPER_TEX)")
 def test_the_float_table_is_the_papers():
     tex = PAPER_TEX.read_text(encoding="utf-8")
     floats = re.findall(r"\\begin\{(figure\*?|table\*?|wraptable|wrapfigure)\}(.*?)\\end\{\1\}", tex, re.S)

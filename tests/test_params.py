@@ -1,4 +1,4 @@
-"""Notebook parameters (issue 17, item 7): typed for ``papermill --help-notebook``, checked in the
+"""Notebook parameters: typed for ``papermill --help-notebook``, checked in the
 first code cell with one line naming the parameter.
 
 * Every parameter of every notebook has a type papermill reads, and its default conforms to it.

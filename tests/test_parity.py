@@ -1,5 +1,5 @@
 """Parity with the official FreeReg code, measured on its own outputs (tests/fixtures/parity,
-a subset of ../shared/parity made by tests/fixtures/make_parity_subset.py), and both settings
+a subset of the official code's full fixture set made by tests/fixtures/make_parity_subset.py), and both settings
 of every departure field the fixtures exposed (the fidelity rule: the default is official)."""
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The front door for one's own data (issue 18): ``freereg register`` and ``freereg_lib.pipeline.register``.
+"""The front door for one's own data: ``freereg register`` and ``freereg_lib.pipeline.register``.
 
 * the command on the official demo layout the tests write and on the embedded ICL sample (tiny
   backend: random weights, the numbers mean nothing): outputs exist, the pose files parse and are

@@ -1,4 +1,4 @@
-"""``freereg register`` and the loaders on bad input (issue 40, geometry checked where data enters).
+"""``freereg register`` and the loaders on bad input (geometry checked where data enters).
 
 Each case failed on the code before it (a traceback, or a silently wrong number): ``--views 0``
 and ``--depth-scale 0`` (tracebacks), ``--depth-size H W`` (accepted, RE 63 deg), ``--cloud-scale``

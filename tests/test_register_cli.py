@@ -1,4 +1,4 @@
-"""``freereg register`` in its own terms (issue 38): ``--up -y`` as the README writes it,
+"""``freereg register`` in its own terms: ``--up -y`` as the README writes it,
 ``--geometric fpfh|fcgf``, and messages that name the command's flags, not Python keywords."""
 from __future__ import annotations
 

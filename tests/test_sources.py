@@ -1,4 +1,4 @@
-"""Honest samples (issue 38): ``n_pairs`` of a fixed pair list is an evenly spread subset, not
+"""Honest samples: ``n_pairs`` of a fixed pair list is an evenly spread subset, not
 the list's first ``n`` (on 7-Scenes those are one scene's smallest motions, where matching each
 pixel to the same pixel of the other view beat FreeReg-D), and the notebooks can say which."""
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """The verdict of ``freereg register`` (REGISTERED / FAILED without ground truth), measured on
-real frames (issue 38): on 61 ICL pairs and the official demo (244 poses: the stub's and the
+real frames: on 61 ICL pairs and the official demo (244 poses: the stub's and the
 true depth, Kabsch and PnP; ``tests/fixtures/verdict_icl_rows.csv``, written by
 ``python -m freereg_lib.commands.verdict_measure``) no pose within (5 deg, 0.1 m) of the truth is called
 FAILED, and the false positives stay those docs/your_data.md reports."""

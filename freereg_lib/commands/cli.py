@@ -164,7 +164,7 @@ def choose_setting(setting: str, pair: Pair, outdoor: bool, virtual: bool,
     outdoors KITTI's. Filling a dense view only smears its edges: on half-size ICL frames
     (tests/test_own_scans.py, stub true depth, Kabsch) the demo setting registered 3 of 6
     sensor-frame and 2 of 6 merged world-frame clouds that the 3DMatch setting registered all of
-    (issue 49 measured 7 vs 14 of 18 7-Scenes pairs, 0 vs 4 of 6 world-frame ones). The official
+    (measured: 7 vs 14 of 18 7-Scenes pairs, 0 vs 4 of 6 world-frame ones). The official
     demo layout takes its own config/demo.yaml. ``setting`` other than ``"auto"`` wins.
     """
     if setting != "auto":

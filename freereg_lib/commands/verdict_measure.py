@@ -1,4 +1,4 @@
-"""How often is ``freereg register``'s verdict wrong? Measured on real frames (issue 38).
+"""How often is ``freereg register``'s verdict wrong? Measured on real frames.
 
 The command says ``REGISTERED`` or ``FAILED`` without ground truth (:func:`freereg_lib.pipeline.register._verdict`:
 enough RANSAC inliers, enough of the matches, a plausible Kabsch scale). This runs the command's

@@ -24,7 +24,7 @@ def spread(n_items: int, n: int | None) -> list[int]:
     """``n`` indices spread evenly over ``range(n_items)``, first and last included (all when
     ``n`` is None or not smaller; none for ``n <= 0``). A fixed pair list is ordered by scene
     and frame, so its first ``n`` entries are one scene's smallest motions: a sample that
-    flatters every method (issue 38); an evenly spread one covers the list."""
+    flatters every method; an evenly spread one covers the list."""
     if n is None or n >= n_items:
         return list(range(n_items))
     if n <= 0:

@@ -1,4 +1,4 @@
-"""The position-only baseline of Table 1 (issue 38): matches from pixel positions alone.
+"""The position-only baseline of Table 1: matches from pixel positions alone.
 
 Each image keypoint is matched to the depth-view keypoint at the same pixel (the image's grid
 mapped onto the depth view when the two sizes differ) or, where that one has no depth, the

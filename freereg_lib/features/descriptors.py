@@ -1,6 +1,6 @@
 """Backend-independent feature operations: per-layer PCA, sampling at keypoints, fusion.
 
-Follows the official code (``shared/paper/FACTS.md``, "What the official code does"):
+Follows the official code (WHU-USI3DV/FreeReg; docs/fidelity.md):
 
 * :func:`pca_reduce`: per chosen layer, each pixel vector L2-normalised over channels, one
   PCA basis fitted on the source and target pixels together (mean-centred covariance, top

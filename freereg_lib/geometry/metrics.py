@@ -1,6 +1,6 @@
 """Evaluation: correct correspondences, FMR, IR, IN, RR, RE, TE and RR over threshold ladders.
 
-Definitions follow the paper and the official code (``shared/paper/FACTS.md``):
+Definitions follow the paper and the official code (docs/fidelity.md):
 
 * a match (image pixel, cloud point) is *evaluable* when the image's true depth at the
   pixel lies in ``depth_range``; it is *correct* when the pixel, lifted with that true

@@ -1,7 +1,7 @@
 """The backend interface and the helpers every backend shares.
 
 A backend turns an image or a depth map into the nine diffusion decoder layers, and an image
-into a metric depth map. Three kinds exist (``shared/DESIGN.md``, "Backends"):
+into a metric depth map. Four kinds exist (docs/backends.md):
 
 * ``stub``: no weights; synthetic scenes only (it reads class ids and true depth);
 * ``tiny``: the real diffusers / transformers classes with small random-weight configs;

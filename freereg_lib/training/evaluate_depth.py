@@ -231,7 +231,7 @@ def write_card(folder: Path, ev: dict) -> None:
     ok = m["mae_m"] <= 0.30
     lines += [
         "",
-        f"Acceptance (issue 15): MAE <= 0.30 m -> {m['mae_m']:.3f} m, "
+        f"Acceptance: MAE <= 0.30 m -> {m['mae_m']:.3f} m, "
         f"{'met' if ok else 'NOT met'} (the paper's ZoeDepth: about 0.27 m on 3DMatch). "
         f"Edge pixels (true depth range > {EDGE_RANGE_M} m in a {EDGE_WINDOW} x {EDGE_WINDOW} window): "
         f"{100 * m['edge_pixel_share']:.1f} % of valid pixels. Pixel shares by true depth: "
