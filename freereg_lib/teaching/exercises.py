@@ -254,10 +254,14 @@ def _(d: Draw):
 
 @_case("student_kabsch", 3, "planar point sets (need the reflection fix)")
 def _(d: Draw):
-    calls = []  # without the fix, about half of them come out reflected: six make a miss unlikely
-    for _ in range(6):
+    calls, reflected = [], 0  # without the fix about half come out reflected: keep drawing until three do
+    while len(calls) < 6 or reflected < 3:
         src = np.c_[d.rng.normal(size=(50, 2)), np.zeros(50)]
-        calls.append((src, cameras.transform(_random_pose(d.rng, angle=2.0), src)))
+        dst = cameras.transform(_random_pose(d.rng, angle=2.0), src)
+        U, _, Vt = np.linalg.svd((src - src.mean(0)).T @ (dst - dst.mean(0)))
+        if np.linalg.det(Vt.T @ U.T) < 0 or len(calls) < 6 - (3 - reflected):
+            calls.append((src, dst))
+            reflected += np.linalg.det(Vt.T @ U.T) < 0
     return calls
 
 

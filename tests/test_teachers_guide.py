@@ -1,0 +1,122 @@
+"""Issue 50: the teacher's guide, run as written, end to end on three fake students.
+
+The commands of "The term in five commands" in ``assignments/README.md`` run in a course folder
+(the project's notebooks and environment linked in). Between them, three students work from
+the handout zip: Alice fills every solution (from the key), Bob hands back the untouched
+notebooks, and Carol gets Kabsch's reflection wrong and calls the library in ``student_fuse``.
+Their returns come back as an LMS would give them (two zips, a folder). The result:
+``grades.csv`` opens as a spreadsheet with one row per student, under the roster's ids, and
+each student has a feedback file that says what each check found.
+"""
+from __future__ import annotations
+
+import csv
+import re
+import shlex
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+nbformat = pytest.importorskip("nbformat")
+
+from freereg_lib.teaching import notebooks as N  # noqa: E402
+from freereg_lib.teaching.exercises import EXERCISES  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+GUIDE = ROOT / "assignments" / "README.md"
+PROGRAM = ".venv/bin/python -m freereg_lib.teaching.assignments"
+
+
+def guide_commands() -> list[str]:
+    """The commands of the walkthrough, in order, from the guide's code blocks."""
+    text = GUIDE.read_text().split("## The term in five commands", 1)[1].split("\n## ", 1)[0]
+    blocks = re.findall(r"```\n(.*?)```", text, flags=re.DOTALL)
+    return [line.strip() for block in blocks for line in block.splitlines() if line.strip().startswith(PROGRAM)]
+
+
+def guide_roster() -> str:
+    return re.search(r"```csv\n(.*?)```", GUIDE.read_text(), flags=re.DOTALL).group(1)
+
+
+def _run(command: str, cwd: Path) -> str:
+    argv = [sys.executable, *shlex.split(command)[1:]]
+    proc = subprocess.run(argv, cwd=cwd, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, (command, proc.stdout[-2000:], proc.stderr[-2000:])
+    return proc.stdout
+
+
+def _student_work(handout_zip: Path, desk: Path, name: str) -> Path:
+    """A student unpacks the handout and works in its notebooks; their notebooks folder."""
+    with zipfile.ZipFile(handout_zip) as z:
+        z.extractall(desk / name)
+    books = desk / name / "handout" / "notebooks"
+    for path in books.glob("*.ipynb"):
+        student, key = nbformat.read(path, as_version=4), nbformat.read(ROOT / "notebooks" / path.name, as_version=4)
+        if name == "bob":
+            continue
+        filled = N.fill(student, key)
+        if name == "carol":
+            for cell in filled.cells:
+                if N._is_solution(cell) and "def student_kabsch" in cell.source:
+                    cell.source = cell.source.replace("np.sign(np.linalg.det(V @ U.T))", "1.0")
+                if N._is_solution(cell) and "def student_fuse" in cell.source:
+                    cell.source = ("from freereg_lib import features\n\n"
+                                   "def student_fuse(f_d, f_g, w):\n    return features.fuse(f_d, f_g, w)\n")
+        nbformat.write(filled, str(path))
+    return books
+
+
+def test_the_guide_walks_three_students_through_release_collection_grading_and_export(tmp_path):
+    commands = guide_commands()
+    assert [c.split()[3] for c in commands] == ["list", "make", "dist", "collect", "grade"], commands
+    course = tmp_path / "course"
+    course.mkdir()
+    for name in ("notebooks", "environment", "pyproject.toml"):
+        (course / name).symlink_to(ROOT / name)
+
+    # 1. Release.
+    printed = _run(commands[0], course)
+    assert all(name in printed for name in EXERCISES)
+    for command in commands[1:3]:
+        _run(command, course)
+    handout_zip = course / "assignments" / "handout.zip"
+    assert handout_zip.is_file() and (course / "answer_key" / "03_fusion.ipynb").is_file()
+    assert not any("answer_key" in n or "teaching/grader" in n for n in zipfile.ZipFile(handout_zip).namelist())
+
+    # The students work, and hand back: two zips and a folder, as an LMS download gives them.
+    desk, returned = tmp_path / "students", course / "returned"
+    returned.mkdir()
+    for name in ("alice", "carol"):
+        books = _student_work(handout_zip, desk, name)
+        with zipfile.ZipFile(returned / f"{name}.zip", "w") as z:
+            for path in books.glob("*.ipynb"):
+                z.write(path, f"{name}_work/notebooks/{path.stem}_{name}.ipynb")
+    books = _student_work(handout_zip, desk, "bob")
+    (returned / "bob").mkdir()
+    for path in books.glob("*.ipynb"):
+        (returned / "bob" / path.name).write_bytes(path.read_bytes())
+    (course / "roster.csv").write_text(guide_roster() + "s003,Carol Diaz,carol\n")
+
+    # 2. Collect, 3. grade.
+    printed = _run(commands[3], course)
+    assert {"alice", "bob", "carol"} <= set(re.findall(r"^(\w+): \d+ notebook", printed, flags=re.MULTILINE))
+    _run(commands[4], course)
+
+    # 4. Export: a spreadsheet with one row per student, and a feedback file each.
+    pd = pytest.importorskip("pandas")
+    table = pd.read_csv(course / "grades" / "grades.csv", dtype={"id": str}).set_index("id")
+    assert list(table.index) == ["s001", "s002", "s003"]
+    assert list(table.columns) == ["name", *EXERCISES, "total"]
+    assert table.loc["s001", "total"] == 60 and table.loc["s002", "total"] == 0
+    assert table.loc["s003", "student_fuse"] == 0 and table.loc["s003", "student_kabsch"] == 7
+    assert table.loc["s003", "total"] == 47
+    with open(course / "grades" / "grades.csv", newline="") as f:
+        assert len(list(csv.reader(f))) == 4
+    feedback = {sid: (course / "grades" / "feedback" / f"{sid}.md").read_text() for sid in table.index}
+    assert "60 / 60 points" in feedback["s001"]
+    assert feedback["s002"].count("not done") >= len(EXERCISES)
+    carol = feedback["s003"]
+    assert "refused" in carol and "imports freereg_lib" in carol and "FAILED (0 / 3) planar point sets" in carol
