@@ -2,7 +2,10 @@
 silent wrong answer, or a message that hid its comparison)."""
 from __future__ import annotations
 
+import dataclasses
 import io
+import json
+import re
 import shutil
 import subprocess
 import sys
@@ -10,11 +13,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
-from freereg_lib.commands import cli
+from freereg_lib.commands import batch, cli
 from freereg_lib.data import synthetic
 from freereg_lib.data.datasets.common import read_points
 from freereg_lib.data.datasets.icl import ICLSample
+from freereg_lib.data.pair import geometry_fault
+from freereg_lib.geometry import cameras
 from freereg_lib.geometry import pose
 from freereg_lib.pipeline import register as R
 from freereg_lib.report import pair_files as PF
@@ -197,3 +203,60 @@ def test_evaluate_split_refuses_a_shard_that_runs_nothing(shard, says, tmp_path,
     rows = tmp_path / "rows.jsonl"
     assert f"--shard {shard}: {says}" in _exits_2(ES.main, ["--shard", shard, "--rows", str(rows)], capsys)
     assert not rows.exists()
+
+
+# --------------------------------------------------------------------------------------
+# A pair's geometry checked against itself (Pair.validate -> geometry_fault).
+
+@pytest.fixture(scope="module")
+def icl_pair():
+    return ICLSample().pair(50, 90)
+
+
+@pytest.mark.parametrize("fault, says", [
+    ("inverted", "T_cam_pc looks inverted"), (3.0, "depth_gt is 3 x the truth"), (10.0, "depth_gt is 10 x the truth"),
+    (0.1, "depth_gt is a tenth of the truth"), (0.5, "2 mm PNG units read as millimetres"),
+    (5.0, "0.2 mm PNG units read as millimetres")])
+def test_validate_names_an_inverted_pose_or_a_depth_in_other_units(icl_pair, fault, says):
+    # Measured when written on 6 ICL pairs, 3 synthetic rooms and 2 streets: every fault named, no good pair refused.
+    if fault == "inverted":
+        bad = dataclasses.replace(icl_pair, T_cam_pc=cameras.invert(icl_pair.T_cam_pc))
+    else:
+        bad = dataclasses.replace(icl_pair, depth_gt=icl_pair.depth_gt * fault)
+    with pytest.raises(ValueError) as info:
+        bad.validate()
+    msg = str(info.value)
+    assert msg.startswith("pair icl/00050-00090: depth_gt lifted with T_cam_pc does not land on the point cloud: ")
+    assert says in msg and "\n" not in msg
+    share = float(re.search(r"cloud: ([\d.]+)% of its pixels", msg).group(1))
+    then = float(re.search(r"then ([\d.]+)%", msg).group(1))
+    assert share < 10 and then > 50  # the numbers compared, printed
+
+
+@pytest.mark.parametrize("make", [lambda: ICLSample().pair(0, 40), lambda: synthetic.make_pair("indoor", seed=2),
+                                  lambda: synthetic.make_pair("outdoor", seed=1)], ids=["icl", "room", "street"])
+def test_validate_passes_consistent_pairs(make):
+    pair = make()
+    assert geometry_fault(pair) == "" and pair.validate() is pair
+
+
+# --------------------------------------------------------------------------------------
+# Batch jobs write their notebooks' figures inside their own job folder.
+
+def test_batch_jobs_write_figures_in_their_own_folder(tmp_path):
+    nb = json.loads((ROOT / "tests" / "fixtures" / "batch_fixture.ipynb").read_text())
+    params = next(c for c in nb["cells"] if "parameters" in c.get("metadata", {}).get("tags", []))
+    params["source"] = "".join(params["source"]).rstrip("\n") + '\nfigures_dir = "../figures"  # shared by default\n'
+    nb["cells"].append({"cell_type": "code", "id": "figure", "metadata": {}, "execution_count": None, "outputs": [], "source":
+                        "import pathlib\npathlib.Path(figures_dir).mkdir(parents=True, exist_ok=True)\n"
+                        "(pathlib.Path(figures_dir) / 'fig.png').write_text(f'{seed}')\n"})
+    (tmp_path / "nbs").mkdir()
+    (tmp_path / "nbs" / "fig_fixture.ipynb").write_text(json.dumps(nb))
+    grid = tmp_path / "grid.yaml"
+    grid.write_text(yaml.safe_dump({"notebooks": [str(tmp_path / "nbs" / "fig_fixture.ipynb")],
+                                    "grid": {"seed": [1, 2]}, "base": {"n_pairs": 2}}))
+    assert batch.main(["run", str(grid), "--runs-dir", str(tmp_path / "runs"), "--name", "a"]) == 0
+    for job in batch.load_grid(grid).jobs:
+        unit = tmp_path / "runs" / "a" / job.id
+        assert (unit / "figures" / "fig.png").read_text() == str(job.params["seed"])
+    assert not (tmp_path / "figures").exists()  # the shared folder beside the notebook stays untouched

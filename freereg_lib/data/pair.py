@@ -10,6 +10,7 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from freereg_lib.geometry import cameras
 
@@ -77,7 +78,9 @@ class Pair:
         cloud sizes away from the cloud (a translation in millimetres), a ``depth_gt`` or
         ``sensor_depth`` / ``depth_frame_gt`` of another size, without one valid pixel, or in other units than the
         cloud (its median more than 50 x or less than 1/50 of the median depth of the cloud
-        seen from the depth camera: millimetres vs metres), id maps of the wrong size.
+        seen from the depth camera: millimetres vs metres), id maps of the wrong size, and a
+        ``depth_gt`` that ``T_cam_pc`` does not lift onto the cloud where an inverted pose or a
+        depth in other units would (:func:`geometry_fault`).
 
         Poses off orthonormal by up to 1e-2 (rotations written with few digits) are replaced
         *in this pair* by their nearest rigid pose, with a warning above 1e-4.
@@ -172,6 +175,10 @@ class Pair:
             if ref > 0 and not 1 / 50 <= median / ref <= 50:
                 fail(f"{name}'s median {median:.4g} is {median / ref:.3g} x the median depth {ref:.4g} m of the "
                      f"point cloud seen from the depth camera: {_units_hint(name, median / ref)}")
+        if self.depth_gt is not None and self.meta.get("has_gt", True):
+            cause = geometry_fault(self)
+            if cause:
+                fail(cause)
         if self.image_ids is not None and np.shape(self.image_ids) != (H, W):
             fail(f"image_ids must be (H, W) = {(H, W)} like the image, got shape {np.shape(self.image_ids)}")
         if self.point_ids is not None and np.shape(self.point_ids) != (len(pts),):
@@ -207,6 +214,66 @@ def _units_hint(name: str, ratio: float) -> str:
         return (f"{name} looks like metres divided by {10.0 ** -k:g} once too often, or the cloud is in "
                 "millimetres; both must be in metres")
     return f"they differ by a factor ~{10.0 ** k:g}: one of them is in other units than metres"
+
+
+# The self-consistency of a pair's ground truth: the image's true depth lifted with
+# T_cam_pc must land on the cloud. A share of lifted points within ON_CLOUD spacings of a cloud
+# point below FEW_ON is suspicious; it is a fault only when an inverted pose or a depth in other
+# units lands at least ALT_GAIN times as many, and at least ALT_ON of them (a pair whose image
+# sees little of the cloud lands few points either way and is left alone).
+ON_CLOUD, FEW_ON, ALT_ON, ALT_GAIN = 3.0, 0.1, 0.2, 3.0
+DEPTH_FAULTS = ((2.0, "depth_gt is half the truth: 2 mm PNG units read as millimetres? (doubled, it lands)"),
+                (0.5, "depth_gt is twice the truth: a depth_scale half too small? (halved, it lands)"),
+                (1 / 3, "depth_gt is 3 x the truth (divided by 3, it lands)"),
+                (3.0, "depth_gt is a third of the truth (x3, it lands)"),
+                (0.2, "depth_gt is 5 x the truth: 0.2 mm PNG units read as millimetres? (divided by 5, it lands)"),
+                (0.1, "depth_gt is 10 x the truth: a depth_scale ten times too small? (divided by 10, it lands)"),
+                (10.0, "depth_gt is a tenth of the truth: a depth_scale ten times too large? (x10, it lands)"))
+_CONSISTENT: dict = {}  # pairs already found consistent, by a fingerprint (validate runs per candidate camera)
+
+
+def geometry_fault(pair: "Pair", max_points: int = 50_000, max_pixels: int = 3000) -> str:
+    """``""`` when ``pair.depth_gt`` lifted with ``pair.T_cam_pc`` lands on ``pair.points``, or
+    when nothing explains why not; else one line naming the likely cause (an inverted
+    ``T_cam_pc``, a depth in other units) and the numbers compared: the share of lifted pixels
+    within ``ON_CLOUD`` spacings of a cloud point and the median distance, against the cloud's
+    spacing (median distance of a cloud point to its nearest neighbour, on at most
+    ``max_points`` points)."""
+    D = np.asarray(pair.depth_gt, dtype=np.float64)
+    T = np.asarray(pair.T_cam_pc, dtype=np.float64)
+    pts = np.asarray(pair.points, dtype=np.float64)
+    key = (pts.shape, float(pts[0].sum() + pts[-1].sum()), D.shape, float(np.nansum(D[:: 7, :: 7])), T.tobytes(),
+           np.asarray(pair.K_image, dtype=np.float64).tobytes())
+    if key in _CONSISTENT:
+        return ""
+    v, u = np.nonzero(np.isfinite(D) & (D > 0))
+    if len(v) < 50:
+        return ""
+    pick = np.linspace(0, len(v) - 1, min(max_pixels, len(v))).astype(np.int64)
+    uv, z = np.stack([u[pick], v[pick]], axis=1).astype(np.float64), D[v[pick], u[pick]]
+    cloud = pts[:: max(1, len(pts) // max_points)]
+    tree = cKDTree(cloud)
+    spacing = float(np.median(tree.query(cloud[:: max(1, len(cloud) // 2000)], k=2)[0][:, 1]))
+    spacing = max(spacing, 1e-9)
+
+    def landing(T_cam_pc, factor=1.0):
+        d = tree.query(cameras.transform(cameras.invert(T_cam_pc), cameras.lift(uv, z * factor, pair.K_image)))[0]
+        return float(np.mean(d <= ON_CLOUD * spacing)), float(np.median(d))
+
+    on, med = landing(T)
+    if on >= FEW_ON:
+        if len(_CONSISTENT) > 256:
+            _CONSISTENT.clear()
+        _CONSISTENT[key] = True
+        return ""
+    alts = [("T_cam_pc looks inverted (its inverse lands it: T_pc_cam given for T_cam_pc?)", landing(cameras.invert(T)))]
+    alts += [(why, landing(T, f)) for f, why in DEPTH_FAULTS]
+    why, (alt_on, alt_med) = max(alts, key=lambda a: a[1][0])
+    if alt_on < max(ALT_ON, ALT_GAIN * on):
+        return ""
+    return (f"depth_gt lifted with T_cam_pc does not land on the point cloud: {on:.1%} of its pixels within "
+            f"{ON_CLOUD:g} x the cloud's spacing {spacing:.3g} m of a point (median distance {med:.3g} m); {why}: "
+            f"then {alt_on:.1%} (median {alt_med:.3g} m)")
 
 
 class UnreadablePair:
