@@ -6,14 +6,13 @@ memory loses only their own unfinished exercises, and every path gets its row. M
 NumPy or the runner in the student's process changes nothing the grader computes, and answers
 are read as data only (no pickles, no code).
 """
-import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 from conftest import fusion_key_source, fusion_student
 
-from freereg_lib.teaching import gradebook, grader, wire
+from freereg_lib.teaching import gradebook, wire
 
 # The hard limit of one student's process below. Every student but the one who hangs must finish
 # within it, start-up included (a student process imports only NumPy: well under a second, more

@@ -61,7 +61,7 @@ def landlock_abi() -> int:
     return max(int(abi), 0)
 
 
-def confine(read: list[Path], write: list[Path], read_dir_only: list[Path] = ()) -> int:
+def confine(read: list[Path], write: list[Path]) -> int:
     """Landlock this process (and its children, for good): returns the ABI used, 0 if unavailable."""
     abi = landlock_abi()
     if abi <= 0:
@@ -97,8 +97,6 @@ def confine(read: list[Path], write: list[Path], read_dir_only: list[Path] = ())
     try:
         for p in read:
             allow(Path(p), _READ)
-        for p in read_dir_only:
-            allow(Path(p), _FS_READ_DIR)
         for p in write:
             allow(Path(p), fs_all)
         if libc.prctl(_PR_SET_NO_NEW_PRIVS, 1, 0, 0, 0) != 0:
