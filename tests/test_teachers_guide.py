@@ -1,4 +1,4 @@
-"""Issue 50: the teacher's guide, run as written, end to end on three fake students.
+"""The teacher's guide, run as written, end to end on three fake students.
 
 The commands of "The term in five commands" in ``assignments/README.md`` run in a course folder
 (the project's notebooks and environment linked in). Between them, three students work from

@@ -1,7 +1,7 @@
 """``make reproduce``: run the companion's main job on the embedded default and print the table.
 
 With the notebooks present it executes all five with papermill on their defaults
-(synthetic scenes; the micro models in 01, 03 and 04, the stub elsewhere) into a run folder, then prints where the executed
+(synthetic scenes; the micro models in 01-04, the stub in 00 and 05) into a run folder, then prints where the executed
 notebooks, figures and tables are, and the benchmark's table beside the paper's. Then it renders the
 executed notebooks as a book (``<out>/site/index.html``, :mod:`freereg_lib.commands.book`) and rewrites
 the README's gallery (``figures/gallery/``, :mod:`freereg_lib.commands.gallery`) from the figures of the run;
