@@ -120,3 +120,33 @@ def test_the_guide_walks_three_students_through_release_collection_grading_and_e
     assert feedback["s002"].count("not done") >= len(EXERCISES)
     carol = feedback["s003"]
     assert "refused" in carol and "imports freereg_lib" in carol and "FAILED (0 / 3) planar point sets" in carol
+
+
+def test_collect_keeps_only_notebooks_inside_its_folder_and_the_roster_gets_a_row_each(tmp_path):
+    from conftest import key_source, student_notebook
+
+    from freereg_lib.teaching import gradebook
+
+    returned = tmp_path / "returned"
+    returned.mkdir()
+    with zipfile.ZipFile(returned / "dan.zip", "w") as z:
+        z.writestr("../../escaped.ipynb", "{}")
+        z.writestr("deep/notebooks/03_fusion.ipynb", "{}")
+        z.writestr("notes.txt", "not a notebook")
+    (returned / "eve").mkdir()
+    (returned / "eve" / "03_fusion.ipynb").symlink_to(ROOT / "notebooks" / "03_fusion.ipynb")  # the key, by a link
+    found = gradebook.collect(returned, tmp_path / "submissions")
+    assert found == {"dan": ["03_fusion.ipynb", "escaped.ipynb"], "eve": []}
+    assert not (tmp_path / "escaped.ipynb").exists() and not list(tmp_path.glob("*/escaped.ipynb"))
+
+    folder = tmp_path / "class"
+    student_notebook(folder / "fay", "03_fusion", key_source("student_mutual_nn"))
+    (tmp_path / "roster.csv").write_text("id,folder\nS-1,fay\nS-2,gus\n")
+    rows = gradebook.grade_all([folder], out=tmp_path / "grades", roster=tmp_path / "roster.csv", limit=60, echo=False)
+    assert [(r["id"], r["score"]) for r in rows] == [("S-1", 10.0), ("S-2", 0.0)]
+    table = list(csv.DictReader(open(tmp_path / "grades" / "grades.csv")))
+    assert [(r["id"], r["student_mutual_nn"], r["total"]) for r in table] == [("S-1", "10", "10"), ("S-2", "0", "0")]
+    assert "no submission" in (tmp_path / "grades" / "feedback" / "S-2.md").read_text()
+    with pytest.raises(ValueError, match="column 'id'"):
+        (tmp_path / "bad.csv").write_text("name\nAnn\n")
+        gradebook.read_roster(tmp_path / "bad.csv")

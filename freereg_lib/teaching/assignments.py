@@ -26,7 +26,8 @@ from freereg_lib.teaching.notebooks import DEFAULT_OUT, METADATA_KEY, NOTEBOOKS,
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m freereg_lib.teaching.assignments", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m freereg_lib.teaching.assignments",
+                                     description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
     p_make = sub.add_parser("make", help="write the student versions of the notebooks")
     p_make.add_argument("--out", default=str(DEFAULT_OUT), help="their folder (default: assignments/student)")

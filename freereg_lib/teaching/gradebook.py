@@ -32,7 +32,8 @@ def collect(returned: str | Path, out: str | Path) -> dict[str, list[str]]:
         sid = entry.stem if entry.suffix == ".zip" else entry.name
         target = Path(out) / sid
         if entry.is_dir():
-            files = {p.name: p.read_bytes() for p in N.notebooks_in(entry) if p.stat().st_size <= MAX_NOTEBOOK_BYTES}
+            files = {p.name: p.read_bytes() for p in N.notebooks_in(entry)  # a link could point at your files
+                     if not p.is_symlink() and p.stat().st_size <= MAX_NOTEBOOK_BYTES}
         elif zipfile.is_zipfile(entry):
             with zipfile.ZipFile(entry) as z:
                 files = {Path(i.filename).name: z.read(i) for i in z.infolist()
@@ -71,8 +72,7 @@ def _file(out: str | Path, sid: str) -> Path:
 
 
 def _absent(sid: str, why: str) -> dict:
-    prepared = grader.Prepared(0, {n: [[] for _ in e.cases] for n, e in EXERCISES.items()}, {})
-    exercises = [grader.score_exercise(e, prepared, None, why) for e in EXERCISES.values()]
+    exercises = [grader.score_exercise(e, None, None, why) for e in EXERCISES.values()]
     return {"id": sid, "path": "", "status": why, "score": 0.0, "max": sum(e["max"] for e in exercises),
             "exercises": exercises}
 

@@ -66,19 +66,18 @@ def _message(text: Any) -> str:
     return text if len(text) <= 400 else text[:397] + "..."
 
 
-def score_exercise(ex: Exercise, prepared: Prepared, answer: Any, problem: str = "not found",
+def score_exercise(ex: Exercise, prepared: Prepared | None, answer: Any, problem: str = "not found",
                    status: str = "missing") -> dict:
     """One exercise's score from what the student's process wrote (``answer``, as read); never raises."""
     result = {"exercise": ex.function, "notebook": ex.notebook, "title": ex.title, "score": 0.0,
               "max": ex.max_points, "status": status, "message": _message(problem),
               "cases": [{"name": c.name, "points": 0.0, "max": c.points, "ok": False, "message": "not graded"}
                         for c in ex.cases]}
-    calls = prepared.inputs[ex.function]
     if isinstance(answer, dict) and isinstance(answer.get("problem"), str):
         result["message"] = _message(answer["problem"])
-    if not isinstance(answer, dict) or "calls" not in answer:
+    if prepared is None or not isinstance(answer, dict) or "calls" not in answer:
         return result
-    records = answer["calls"]
+    records, calls = answer["calls"], prepared.inputs[ex.function]
     if not (isinstance(records, list) and len(records) == len(calls)
             and all(isinstance(r, list) and len(r) == len(c) for r, c in zip(records, calls))):
         result.update(status="failed", message="its answers do not have the shape of the grader's calls")
@@ -231,7 +230,8 @@ def _run_student(job: Path, sources: dict[str, str], prepared: Prepared, timeout
     work = job / "work"
     env = {sandbox.MARKER_ENV: marker, "HOME": str(work), "TMPDIR": str(work / "tmp"), "PATH": "/usr/bin:/bin",
            "LANG": "C.UTF-8", "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    boot = f"import sys; sys.path[:0] = [{str(lib)!r}]; from grading import student; sys.exit(student.main(sys.argv[1]))"
+    boot = (f"import sys; sys.path[:0] = [{str(lib)!r}]; "
+            "from grading import student; sys.exit(student.main(sys.argv[1]))")
     sandbox.subreaper(True)
     try:
         proc = subprocess.Popen([sys.executable, "-I", "-S", "-c", boot, str(job)], cwd=work, env=env,

@@ -161,8 +161,9 @@ def _function_stub(node: ast.FunctionDef, lines: list[str], chunk_start: int, md
         hint = doc.strip().splitlines()[0]
     else:
         hint = None
-    message = (f"{node.name} is your exercise. Hint: {hint}" if hint else
-               f"{node.name} is your exercise: write it as the text above asks, then run the check cell below.")
+    message = (f"{node.name} is your exercise (NumPy and the standard library only). Hint: {hint}" if hint else
+               f"{node.name} is your exercise (NumPy and the standard library only): write it as the text above "
+               "asks, then run the check cell below.")
     out.append(f"{indent}# Your code here: replace the line below with your implementation.")
     out.append(f"{indent}raise NotImplementedError({json.dumps(message, ensure_ascii=False)})")
     return out
