@@ -174,7 +174,7 @@ def graded(tmp_path_factory):
 
 @pytest.mark.parametrize("form", ["plain", "disguised"])
 @pytest.mark.parametrize("cheat", list(SIX))
-def test_each_cheat_of_issue_50_scores_zero_on_its_exercise(graded, cheat, form):
+def test_each_cheat_that_beat_the_old_grader_scores_zero_on_its_exercise(graded, cheat, form):
     by, rows = graded
     e = by[f"{form}_{cheat}"][SIX[cheat][0]]
     assert e["score"] == 0 and rows[f"{form}_{cheat}"]["score"] == 0, e
