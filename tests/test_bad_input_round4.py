@@ -260,3 +260,13 @@ def test_batch_jobs_write_figures_in_their_own_folder(tmp_path):
         unit = tmp_path / "runs" / "a" / job.id
         assert (unit / "figures" / "fig.png").read_text() == str(job.params["seed"])
     assert not (tmp_path / "figures").exists()  # the shared folder beside the notebook stays untouched
+
+
+def test_swapped_cx_cy_are_named_not_blamed_on_depth_size(files, tmp_path, capsys):
+    fx, fy, cx, cy = files["K"]
+    argv = ["register", str(files["image"]), str(files["cloud"]), "--K", fx, fy, cy, cx, "--image-depth",
+            str(files["image_depth"]), "--backend", "stub", "--out", str(tmp_path / "o")]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert "--K: cx, cy look swapped" in err and f"--K {float(fx):g} {float(fy):g} {float(cx):g} {float(cy):g}" in err
+    assert "depth-size" not in err and "depth_size" not in err and err.count("\n") == 1

@@ -69,7 +69,8 @@ from pathlib import Path
 
 from freereg_lib.commands import cluster
 from freereg_lib.commands.batch_files import LOCK_FILE, RunFolderLocked, lock_run_folder  # noqa: F401
-from freereg_lib.commands.batch_grid import CONTRACT_PARAMS, SOLVERS, Grid, Job, check_name, job_id, load_grid  # noqa: F401
+from freereg_lib.commands.batch_grid import (  # noqa: F401
+    CONTRACT_PARAMS, SOLVERS, Grid, Job, _declared_parameters, check_name, job_id, load_grid)
 from freereg_lib.commands.batch_rows import (  # noqa: F401
     _MISSING,
     PAPER_DATASETS,
@@ -149,13 +150,20 @@ def run_job(job: Job, unit: Path, shard: str, kernel: str = "python3", log_outpu
         (unit / stale).unlink(missing_ok=True)
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
+    params = {**job.params, "out_dir": str(out.resolve()), "shard": shard}
+    # A notebook's figures go to its own job folder, not the checkout's shared ../figures: two
+    # runs in one checkout overwrote each other's PNGs there (FileNotFoundError, "broken PNG"),
+    # and the run's lock covers only its run folder.
+    if "figures_dir" not in job.params and "figures_dir" in _declared_parameters(job.path):
+        shutil.rmtree(unit / "figures", ignore_errors=True)
+        params["figures_dir"] = str((unit / "figures").resolve())
     job_facts = {"notebook": job.notebook, "params": job.params, "shard": shard}
     (unit / "job.json").write_text(json.dumps(job_facts, indent=1))
     start = time.time()
     try:
         pm.execute_notebook(
             str(job.path), str(unit / "notebook.ipynb"),
-            parameters={**job.params, "out_dir": str(out.resolve()), "shard": shard},
+            parameters=params,
             # "python3" is the ipykernel of the running interpreter: jupyter_client swaps the
             # spec's bare `python` for sys.executable, so jobs use this very environment.
             kernel_name=kernel, cwd=str(job.path.parent), progress_bar=False,

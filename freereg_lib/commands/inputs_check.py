@@ -7,6 +7,7 @@ naming the input and what was expected (docs/troubleshooting.md, "When something
 * :func:`depth_size_fits`: ``--depth-size W H`` against the depth camera's principal point
   (``--depth-K``) or, without one, against the image's aspect ratio (a depth camera given no
   intrinsics has the image's field of view); ``H W`` given for ``W H`` is named as such;
+* :func:`principal_point_order`: ``--K fx fy cy cx`` (cx and cy swapped) named as such;
 * :func:`exif_orientation`: the EXIF orientation tag of a photo. Images are read **as their
   pixels are stored** (the tag is not applied, to the image or to its depth map), because
   intrinsics and depth maps describe the sensor's stored pixel grid; a photo whose tag asks for
@@ -87,6 +88,24 @@ def depth_size_fits(image_hw: tuple[int, int], depth_hw: tuple[int, int], depth_
         + (f"you gave H W? --depth-size {Hd} {Wd} fits the image" if swapped else
            "without --depth-K the depth camera takes the image's intrinsics scaled to its size, so its aspect "
            "must be the image's; give --depth-K fx fy cx cy for a depth camera of another field of view"))
+
+
+def principal_point_order(K: np.ndarray, image_hw: tuple[int, int], flag: str = "--K") -> None:
+    """Refuse image intrinsics whose ``cx, cy`` were given as ``cy, cx`` (``--K fx fy cy cx``): the
+    principal point near the centre of the image turned (within 10 % of the sides together) and
+    far from its centre as it is (over 20 %). Without this check the swap was blamed on
+    ``--depth-size``, which the depth camera had taken from the image. Square images pass."""
+    H, W = (int(v) for v in image_hw)
+    K = np.asarray(K, dtype=np.float64)
+    cx, cy = K[0, 2], K[1, 2]
+    if H == W:
+        return
+    given = abs(cx - (W - 1) / 2) / W + abs(cy - (H - 1) / 2) / H
+    swapped = abs(cx - (H - 1) / 2) / H + abs(cy - (W - 1) / 2) / W
+    if swapped < 0.1 and given > 0.2:
+        raise _error(f"{flag}: cx, cy look swapped: (cx, cy) = ({cx:g}, {cy:g}) is near the centre of a {H} x {W} "
+                     f"(W x H) image, far from the centre ({(W - 1) / 2:g}, {(H - 1) / 2:g}) of this {W} x {H} one; "
+                     f"the order is fx fy cx cy (cx along the width): {flag} {K[0, 0]:g} {K[1, 1]:g} {cy:g} {cx:g}")
 
 
 # --------------------------------------------------------------------------------------

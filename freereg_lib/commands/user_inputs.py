@@ -115,6 +115,7 @@ def load_inputs(
     if K is None:
         raise InputError("missing image intrinsics: give --K fx fy cx cy (pixels) or --intrinsics FILE")
     K_img = _as_K(K, (H, W), f"the image intrinsics K for {Path(image).name} ({W} x {H})")
+    IC.principal_point_order(K_img, (H, W), "--K")
     pts = _read(_read_cloud, cloud, "point cloud")
     if cloud_scale != 1.0:
         pts = pts * float(cloud_scale)
