@@ -314,6 +314,11 @@ def test_grader_reports_a_missing_notebook_and_a_missing_path(student_dir, tmp_p
     result = grader.grade(folder)
     assert result["score"] == 0 and result["max"] == 60
     assert {e["status"] for e in result["exercises"]} == {"missing", "not done"}
+    (tmp_path / "cat").mkdir()
+    (tmp_path / "cat" / "03_fusion_cat.ipynb").write_text("garbage")  # one unreadable notebook, graded alone
+    one = grader.grade(tmp_path / "cat" / "03_fusion_cat.ipynb")
+    assert [e["exercise"] for e in one["exercises"]] == ["student_mutual_nn", "student_fuse"] and one["score"] == 0
+    assert all("not a readable notebook" in e["message"] for e in one["exercises"])
     assert assignments.main(["grade", str(tmp_path / "nobody")]) == 0
     assert "no such notebook or folder" in capsys.readouterr().out
 

@@ -124,7 +124,7 @@ def grade_all(paths: list[str | Path], out: str | Path | None = None, roster: st
         (Path(out) / "feedback").mkdir(parents=True, exist_ok=True)
     results: list[dict] = []
     for path in submissions(paths):
-        name = path.name if path.is_dir() or path.parent == Path(".") else path.parent.name
+        name = path.parent.resolve().name if path.suffix == ".ipynb" else path.name  # a notebook: its folder
         try:
             result = grader.grade(path, prepared, timeout, limit, memory_mb, confine)
         except Exception as e:  # noqa: BLE001 - one path's failure (missing, or the grader's own) is that row

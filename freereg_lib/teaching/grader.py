@@ -140,7 +140,10 @@ def submission(path: Path) -> tuple[dict[str, str], list[str], dict[str, str]]:
         try:
             nb = N._read(f)
         except Exception as e:  # noqa: BLE001 - any unreadable file is the student's, and a result
-            missing[f.name] = f"{f.name} is not a readable notebook ({_message(e)})"
+            stem = N._notebook_stem({}, f)  # its name says which notebook it was meant to be
+            for name in (n for n, ex in EXERCISES.items() if ex.notebook == stem):
+                wanted += [name] if name not in wanted else []
+                missing.setdefault(name, f"{f.name} is not a readable notebook ({_message(e)})")
             continue
         names = N.relevant(nb, f)
         wanted += [n for n in names if n not in wanted]
