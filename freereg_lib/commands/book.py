@@ -297,6 +297,9 @@ def build_book(run_dir: str | Path, out: str | Path | None = None, figures_dir: 
     when the build has any (a broken cross-reference among them).
     """
     run_dir = Path(run_dir).resolve()
+    conf = Path(conf_dir) if conf_dir is not None else BOOK_CONF
+    if not (conf / "conf.py").is_file():
+        raise BookError(f"{conf / 'conf.py'} is missing: run the command in the project folder (where book/ is)")
     site = Path(out).resolve() if out is not None else run_dir / "site"
     figures_dir = Path(figures_dir) if figures_dir is not None else (
         run_dir / "figures" if (run_dir / "figures").is_dir() else ROOT / "figures")
@@ -310,7 +313,6 @@ def build_book(run_dir: str | Path, out: str | Path | None = None, figures_dir: 
     write_index(src, pages, figures_dir, docs, run_dir)
     if site.exists():
         shutil.rmtree(site)
-    conf = Path(conf_dir) if conf_dir is not None else BOOK_CONF
     cmd = [sys.executable, "-m", "sphinx", "-b", "html", "-q", "-n", "-W", "--keep-going", "-c", str(conf),
            "-d", str(run_dir / "book_doctrees"), str(src), str(site)]
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
