@@ -35,7 +35,7 @@ def hits(text: str) -> list[str]:
 
 
 def test_the_pattern_sees_each_kind_of_mention():
-    assert len(hits("see ../shar" + "ed/paper/FACTS.md\nas DESIGN" + ".md says\n(" + "issue 42)\nIssue" + " 43: x\nok")) == 4
+    assert len(hits("see ../shar" + "ed/paper/FACTS.md\nas DESIGN" + ".md says\n(iss" + "ue 42)\nIssue" + " 43: x\nok")) == 4
     assert not hits("the shared memory of a worker; issue a warning; 3 issues remain; tissue 4")
 
 
