@@ -229,3 +229,11 @@ def test_without_landlock_the_import_path_still_holds_no_library(tmp_path):
     assert e["score"] == 0 and "No module named 'freereg_lib" in e["message"], e
     mnn = student_notebook(tmp_path / "ann", "03_fusion", key_source("student_mutual_nn"))
     assert grader.grade(mnn, grader.prepare(seed=1), limit=60, confine=False)["score"] == 10
+
+
+def test_a_library_installed_where_the_student_may_read_is_reported_unconfined(monkeypatch):
+    from freereg_lib.teaching import student
+
+    assert not grader.library_readable()  # here: the project folder is none of the readable ones
+    monkeypatch.setattr(student, "SYSTEM", (*student.SYSTEM, str(ROOT)))  # as if installed under /usr
+    assert grader.library_readable()

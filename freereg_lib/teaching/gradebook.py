@@ -94,7 +94,7 @@ def feedback(result: dict) -> str:
             lines += [f"- {'passed' if c['ok'] else 'FAILED'} ({points(c['points'])} / {points(c['max'])}) "
                       f"{c['name']}" + (f": {c['message']}" if c["message"] else "") for c in e["cases"]]
     if result.get("confined") is False:
-        lines += ["", "_Graded without Landlock: the grading process could read files._"]
+        lines += ["", "_Graded without confinement (no Landlock): the student's code could read files._"]
     return "\n".join(lines) + "\n"
 
 
@@ -148,6 +148,7 @@ def grade_all(paths: list[str | Path], out: str | Path | None = None, roster: st
         if echo:
             print(f"{len(results)} students: {Path(out) / 'grades.csv'} and {Path(out) / 'feedback'}/")
     if echo and any(r.get("confined") is False for r in results):
-        print("note: graded without Landlock: the students' code could read your files (see the guide)",
+        print("note: graded without confinement (no Landlock, or freereg_lib lies in a folder the students' "
+              "process may read): their code could read your files and load the library by path (see the guide)",
               file=sys.stderr)
     return results

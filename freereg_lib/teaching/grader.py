@@ -21,6 +21,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import sysconfig
 import tempfile
 import threading
 from dataclasses import dataclass
@@ -29,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from freereg_lib.teaching import check, notebooks as N, sandbox, wire
+from freereg_lib.teaching import check, notebooks as N, sandbox, student, wire
 from freereg_lib.teaching.exercises import EXERCISES, Draw, Exercise
 
 CASE_TIMEOUT_S = 30.0     # per call of a student's function (soft: in the student's process)
@@ -196,11 +197,21 @@ def grade(path: str | Path, prepared: Prepared | None = None, timeout: float = C
         run["status"] = "exited"  # os._exit(0) or the like, before the end
     result = {"path": str(path), "status": run["status"], "score": float(sum(e["score"] for e in exercises)),
               "max": float(sum(e["max"] for e in exercises)), "exercises": exercises,
-              "confined": bool(confine and sandbox.landlock_abi()), "leftover_processes_killed": run["killed"],
+              "confined": bool(confine and sandbox.landlock_abi()) and not library_readable(),
+              "leftover_processes_killed": run["killed"],
               "seed": prepared.seed}
     if run["status"] != "graded":
         result["stopped"] = run["ended"]
     return result
+
+
+def library_readable() -> bool:
+    """Whether the library's files lie in a folder the confined process may read (the Python's own
+    folders, NumPy's, the system's: a library installed into /usr, say); Landlock cannot hide them then."""
+    package, home = Path(__file__).resolve().parents[1], Path(np.__file__).resolve().parent
+    places = [sysconfig.get_path(k) for k in ("stdlib", "platstdlib")]
+    places += [*student.SYSTEM, home, home.parent / "numpy.libs"]
+    return any(package.is_relative_to(Path(p).resolve()) for p in places if Path(p).exists())
 
 
 def _runner(job: Path) -> Path:
