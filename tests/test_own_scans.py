@@ -9,9 +9,9 @@ pairs as :func:`freereg_lib.pipeline.register.register` with the matching config
 as many as the demo setting it always used before; its REGISTERED verdicts are right.
 
 Measured when written (stub with the true depth, FreeReg-G, Kabsch, 2,000 iterations, half-size
-frames): sensor-frame clouds 3 of 3 with the 3DMatch setting (RE 1.5-2.8 deg), the demo setting
-registered 0 40 and 150 190 wrongly or not at all; merged world-frame clouds 3 of 3 (RE 0.6-2.2 deg)
-against 1 of 3 with the demo setting.
+frames): sensor-frame clouds 3 of 3 with the 3DMatch setting (RE 1.5-2.8 deg), 1 of 3 with the
+demo setting (0-40 FAILED at 20 inliers, 150-190 at 93 deg); merged world-frame clouds 3 of 3
+(RE 0.6-2.2 deg) against 1 of 3 with the demo setting.
 """
 from __future__ import annotations
 
