@@ -1,4 +1,4 @@
-"""The verdict rule on pairs it was not fitted on (issue 49; docs/your_data.md, "Registered or failed").
+"""The verdict rule on pairs it was not fitted on (docs/your_data.md, "Registered or failed").
 
 The rule's thresholds (:data:`freereg_lib.pipeline.register.MIN_INLIERS`, ``MIN_INLIER_RATIO``,
 ``MAX_SCALE``) were set on ICL pairs with frame gaps of 10-80 (``tests/fixtures/verdict_icl_rows.csv``).
