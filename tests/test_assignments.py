@@ -442,6 +442,9 @@ def test_the_check_cell_says_when_a_solution_would_not_be_graded_alone():
     del env["cameras"]
     assert "uses the notebook's pair_pose" in check.graded_alone(env["student_kabsch"], env)
     assert check.library_use("x = 'freereg' + '_lib'") is None  # what the source cannot show, the process stops
+    assert check.library_use('def f():\n    """Like freereg_lib.features.fuse."""\n') is None  # prose may name it
+    assert check.library_use("import importlib\nm = importlib.import_module('freereg_lib.features')") == \
+        "line 2 names freereg_lib ('freereg_lib.features')"
 
 
 def test_exercises_sit_at_the_end_of_their_section():

@@ -25,13 +25,15 @@ def library_use(source: str) -> str | None:
         tree = ast.parse(source)
     except SyntaxError:
         return None
+    prose = {id(n.value) for n in ast.walk(tree) if isinstance(n, ast.Expr)}  # docstrings may name it
     for node in ast.walk(tree):
         names: list[str] = []
         if isinstance(node, ast.Import):
             names = [a.name for a in node.names]
         elif isinstance(node, ast.ImportFrom) and node.module:
             names = [node.module]
-        elif isinstance(node, ast.Constant) and isinstance(node.value, str) and LIBRARY in node.value:
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str) and LIBRARY in node.value \
+                and id(node) not in prose:
             return f"line {node.lineno} names {LIBRARY} ({node.value[:60]!r})"
         hit = next((n for n in names if n.split(".")[0] == LIBRARY), None)
         if hit:
