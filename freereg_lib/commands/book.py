@@ -68,6 +68,8 @@ PAPER_FLOATS: tuple[PaperFloat, ...] = (
                "Beside the paper's Table 9", ("02_depth_error_sweep",)),
     PaperFloat("Table 9", "PnP vs Kabsch: RR threshold ladders (appendix)", "04_benchmark",
                "4. Registration recall over threshold ladders", ("04_rr_ladder",)),
+    PaperFloat("Table 13", "DDIM iterations: faster features (appendix)", "06_appendix", "3. The verdict",
+               ("06_table13_ddim",)),
 )
 
 BACKEND_NOTES = {
