@@ -89,3 +89,22 @@ def fusion_key_source(name: str) -> str:
 def fusion_student(folder, *sources: str):
     """A student's ``folder/03_fusion.ipynb`` whose solution cells are ``sources``; its path."""
     return student_notebook(folder, "03_fusion", *sources)
+
+
+def fill(student, key):
+    """The student notebook with the key's solution cells put back (a copy), matched by the
+    functions they define, else by their order."""
+    import copy
+
+    from freereg_lib.teaching import notebooks as N
+
+    out = copy.deepcopy(student)
+    key_cells = [c for c in key.cells if N._is_solution(c)]
+    by_names = {tuple(N._defined_functions(c.source)): c.source for c in key_cells}
+    for k, cell in enumerate(c for c in out.cells if N._is_solution(c)):
+        names = tuple(N._defined_functions(cell.source))
+        if names in by_names:
+            cell.source = by_names[names]
+        elif k < len(key_cells):
+            cell.source = key_cells[k].source
+    return out

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import fill
 
 nbformat = pytest.importorskip("nbformat")
 papermill = pytest.importorskip("papermill")
@@ -371,7 +372,7 @@ def unfilled_run(handout_dir, tmp_path_factory):
 
 
 def test_student_notebook_filled_from_the_key_runs_top_to_bottom(student_dir, tmp_path):
-    filled = N.fill(_student(student_dir, PAPERMILL_STEM), _key(PAPERMILL_STEM))
+    filled = fill(_student(student_dir, PAPERMILL_STEM), _key(PAPERMILL_STEM))
     assert [c.source for c in _solution_cells(filled)] == [c.source for c in _solution_cells(_key(PAPERMILL_STEM))]
     path = tmp_path / f"{PAPERMILL_STEM}.ipynb"
     nbformat.write(filled, str(path))

@@ -19,9 +19,11 @@ import zipfile
 from pathlib import Path
 
 import pytest
+from conftest import fill, key_source, student_notebook
 
 nbformat = pytest.importorskip("nbformat")
 
+from freereg_lib.teaching import gradebook  # noqa: E402
 from freereg_lib.teaching import notebooks as N  # noqa: E402
 from freereg_lib.teaching.exercises import EXERCISES  # noqa: E402
 
@@ -57,7 +59,7 @@ def _student_work(handout_zip: Path, desk: Path, name: str) -> Path:
         student, key = nbformat.read(path, as_version=4), nbformat.read(ROOT / "notebooks" / path.name, as_version=4)
         if name == "bob":
             continue
-        filled = N.fill(student, key)
+        filled = fill(student, key)
         if name == "carol":
             for cell in filled.cells:
                 if N._is_solution(cell) and "def student_kabsch" in cell.source:
@@ -123,10 +125,6 @@ def test_the_guide_walks_three_students_through_release_collection_grading_and_e
 
 
 def test_collect_keeps_only_notebooks_inside_its_folder_and_the_roster_gets_a_row_each(tmp_path):
-    from conftest import key_source, student_notebook
-
-    from freereg_lib.teaching import gradebook
-
     returned = tmp_path / "returned"
     returned.mkdir()
     with zipfile.ZipFile(returned / "dan.zip", "w") as z:

@@ -1,8 +1,8 @@
 """The exercises, their graded cases and the library reference each answer is compared with.
 
 A case is a list of calls of the student's function: :attr:`Case.calls` draws their arguments
-from the grader's secret generator (:class:`Draw`: a new seed every grading run unless the
-teacher fixes one), so no answer can be prepared in advance. The student's process only ever
+from the run's generator (:class:`Draw`: a new seed every grading run unless the teacher fixes
+one), so no answer can be prepared in advance. The student's process only ever
 sees these arguments and returns its answers as data; the grader computes
 :attr:`Exercise.reference` on the same arguments in its own process and compares with
 :attr:`Exercise.check`. This module runs no student code.
@@ -10,7 +10,6 @@ sees these arguments and returns its answers as data; the grader computes
 from __future__ import annotations
 
 import functools
-import inspect
 import math
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -52,14 +51,14 @@ EXERCISES: dict[str, Exercise] = {}
 
 
 class Draw:
-    """The grader's secret draws for one case: a generator of its own and the run's room."""
+    """The run's draws for one case: a generator of its own and the run's room."""
 
-    def __init__(self, secret: int, index: int):
-        self.secret = int(secret)
-        self.rng = np.random.default_rng([self.secret, index])
+    def __init__(self, seed: int, index: int):
+        self.seed = int(seed)
+        self.rng = np.random.default_rng([self.seed, index])
 
     def room(self):
-        return _room_pair(self.secret % (2**31 - 1))
+        return _room_pair(self.seed % (2**31 - 1))
 
 
 def _exercise(function: str, notebook: str, title: str, teaches: str, reference: Callable,
@@ -147,11 +146,8 @@ def _(d: Draw):
 
 def _ref_ir(*args) -> float:
     """The exercise's IR: the fraction of evaluable matches that are correct, 0 with fewer than 3
-    evaluable (``few="zero"`` where the library also offers the official tool's convention)."""
-    correct, evaluable = metrics.correct_matches(*args)
-    if "few" in inspect.signature(metrics.inlier_stats).parameters:
-        return metrics.inlier_stats(correct, evaluable, few="zero")[0]
-    return metrics.inlier_stats(correct, evaluable)[0]
+    evaluable (``few="zero"``; the library also offers the official tool's convention)."""
+    return metrics.inlier_stats(*metrics.correct_matches(*args), few="zero")[0]
 
 
 def _check_ir(got, want) -> None:

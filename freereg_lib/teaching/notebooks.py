@@ -3,7 +3,6 @@
 * :func:`make` writes a student version of every notebook: each ``solution`` cell keeps its
   functions' signatures and docstrings and gets the body ``raise NotImplementedError("<hint>")``;
   ``check`` cells stay (students run them to test themselves); outputs are stripped.
-* :func:`fill` puts the key's solutions back into a student version (for the tests).
 * The rest reads notebooks statically (tags, defined functions, the solution code of each
   exercise) for the grader. Nothing here runs a notebook's code.
 """
@@ -278,26 +277,6 @@ def make(out: str | Path = DEFAULT_OUT, notebooks: str | Path = NOTEBOOKS,
             _strip(answer)
             nbformat.write(answer, str(Path(key) / path.name))
     return written
-
-
-def fill(student, key):
-    """The student notebook with the key's solution cells put back (a copy).
-
-    Cells are matched by the functions they define, else by their order.
-    """
-    out = copy.deepcopy(student)
-    key_cells = [c for c in key.cells if _is_solution(c)]
-    by_names = {tuple(_defined_functions(c.source)): c.source for c in key_cells}
-    mine = [c for c in out.cells if _is_solution(c)]
-    for k, cell in enumerate(mine):
-        names = tuple(_defined_functions(cell.source))
-        if names in by_names:
-            cell.source = by_names[names]
-        elif k < len(key_cells):
-            cell.source = key_cells[k].source
-    return out
-
-
 
 
 # --------------------------------------------------------------------------------------
