@@ -52,6 +52,7 @@ def rows(n_pairs: int = 40, max_gap: int = 80, iters: int = 50_000, solvers=("ka
     fitted on the first. ``demo``: the official demo folder, added as one more pair."""
     import dataclasses
 
+    from freereg_lib.commands.cli import choose_setting
     from freereg_lib.commands.real_frames import run
     from freereg_lib.config import config_for
     from freereg_lib.data.datasets.icl import ICLSample
@@ -64,10 +65,17 @@ def rows(n_pairs: int = 40, max_gap: int = 80, iters: int = 50_000, solvers=("ka
     pairs += [dataclasses.replace(sample.pair(*listed[k]), sensor_depth=None)
               for k in pick(len(listed), n_pairs, held_out)]
     gaps = {p.name: p.meta.get("frame_cloud", 0) - p.meta.get("frame_image", 0) for p in pairs}
-    cfg = config_for("demo", ransac_iters=iters)  # the command's indoor config
+    # The setting the command chooses for each pair (cli.choose_setting), as it would run it.
+    by_setting: dict[str, list] = {}
+    for p in pairs:
+        by_setting.setdefault(choose_setting("auto", p, False, False, p is pairs[0] and bool(demo))[0], []).append(p)
     keep = ("depth", "solver", "success", "n_matches", "n_inliers", "scale", "RE", "TE", "seconds")
-    return [{"pair": r["pair"], "gap": gaps[r["pair"]], **{k: r[k] for k in keep}}
-            for r in run(depths=depths, solvers=solvers, cfg=cfg, progress=progress, pairs=pairs)]
+    out = []
+    for setting, group in by_setting.items():
+        cfg = config_for(setting, ransac_iters=iters)
+        out += [{"pair": r["pair"], "gap": gaps[r["pair"]], "setting": setting, **{k: r[k] for k in keep}}
+                for r in run(depths=depths, solvers=solvers, cfg=cfg, progress=progress, pairs=group)]
+    return out
 
 
 def verdicts(table, min_inliers=None, min_ratio=None, max_scale=None) -> np.ndarray:
