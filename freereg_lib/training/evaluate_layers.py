@@ -31,8 +31,8 @@ LAYER_SETS = {"a": [0], "b": [1], "c": [2], "d": [3], "e": [4], "f": [5], "g": [
 GROUPS = {"coarse 0-2": "abc", "medium 3-5": "def", "fine 6-8": "ghi"}
 
 
-def pair_rows(pair, backend, cfg) -> dict:
-    """IR, IN, n_matches per Table 2 row for one pair."""
+def pair_rows(pair, backend, cfg, layer_sets: dict[str, list[int]] = LAYER_SETS) -> dict:
+    """IR, IN, n_matches per row of ``layer_sets`` (default: Table 2's) for one pair."""
     from dataclasses import replace
 
     from freereg_lib import features, pipeline
@@ -41,7 +41,7 @@ def pair_rows(pair, backend, cfg) -> dict:
     base = pipeline.compute_features(pair, backend, cfg, diffusion=False, geometric=False)
     maps_img, maps_dep = pipeline.diffusion_maps(pair, base.view, backend)
     out = {}
-    for row, layers in LAYER_SETS.items():
+    for row, layers in layer_sets.items():
         f_img, f_dep = features.pca_reduce(maps_img, maps_dep, layers, cfg.pca_dim)
         feats = replace(base, diff_image=features.sample_features(f_img, base.uv_image, pair.image_size),
                         diff_depth=features.sample_features(f_dep, base.uv_depth, pair.depth_size))

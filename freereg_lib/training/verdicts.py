@@ -16,6 +16,7 @@ SPLIT_JSON = "test_split.json"
 LAYERS_JSON = "test_split_layers.json"
 TUNED_JSON = "fusion/test_split_fpfh0.15_w0.5.json"
 DDIM_JSON = "ddim_iterations_test.json"
+COMBINATIONS_JSON = "dev_layer_combinations.json"
 
 
 def _load(name: str) -> dict | None:
@@ -183,4 +184,28 @@ def table13() -> list[str]:
                  f"({_sig(test['p'])}; the paper: -1.4) -> " + (
                      "a significant loss here" if test["p"] < 0.05 and test["diff"] < 0 else
                      "no significant change on these pairs (the interval says how large a change they can rule out)"))
+    return lines
+
+
+def table8() -> list[str]:
+    """Table 8's reading: which three- or four-layer combination the development set prefers, and
+    where the paper's choice (0, 4, 6) ranks, beside the paper's validation scene."""
+    r = _load(COMBINATIONS_JSON)
+    if r is None:
+        return [f"(no committed {COMBINATIONS_JSON}: run python -m freereg_lib.training.evaluate_combinations)"]
+    rows, chosen = r["rows"], r["chosen"]
+    lines = [f"Committed development set (freereg_lib/models/micro/weights/{COMBINATIONS_JSON}): {r['n_pairs']} "
+             f"synthetic indoor pairs, where the micro models' choices are made (Table 8 is the paper's choice "
+             f"table, on its validation scene BFO); FreeReg-D matches, no pose solved:"]
+    for m in ("IR", "IN"):
+        v = r["verdict"][m]
+        best = v["micro_best"]
+        b = rows[best][m]
+        c = rows[chosen][m]
+        test = ("" if v["p_best_vs_chosen"] is None else f"; best against (0, 4, 6): {_sig(v['p_best_vs_chosen'])}, "
+                f"optimistic: the best was picked among {v['n_rows']} after the fact")
+        lines.append(f"  by {m}: best {tuple(rows[best]['layers'])} {b['mean']:.1f} [{b['ci'][0]:.1f}, {b['ci'][1]:.1f}], "
+                     f"(0, 4, 6) {c['mean']:.1f} [{c['ci'][0]:.1f}, {c['ci'][1]:.1f}] ranks {v['chosen_rank_micro']} of "
+                     f"{v['n_rows']}{test}; the paper's best {tuple(v['paper_best_layers'])}, its (0, 4, 6) ranks "
+                     f"{v['chosen_rank_paper']}; rank correlation with the paper {v['rank_correlation']:+.2f}")
     return lines
