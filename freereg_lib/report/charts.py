@@ -168,3 +168,20 @@ def rr_ladder(table, rungs: list[str], label_col: str, title: str, ours_label: s
     ax.set_title(title, fontsize=10)
     fig.tight_layout()
     return fig
+
+
+def paper_scatter(paper_values, ours, labels, metric: str, title: str, ours_label: str = "re-run"):
+    """Each row of a table as a point: the paper's value (x) against the re-run's (y), labelled,
+    so that agreement in *order* shows as a rising cloud whatever the two scales are."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(min(FIG_WIDTH_IN, 6.0), 4.2))
+    x, y = np.asarray(paper_values, dtype=float), np.asarray(ours, dtype=float)
+    ax.scatter(x, y, color="tab:blue")
+    for xi, yi, text in zip(x, y, labels):
+        ax.annotate(str(text), (xi, yi), textcoords="offset points", xytext=(3, 3), fontsize=7)
+    ax.set_xlabel(f"{metric} (%), paper")
+    ax.set_ylabel(f"{metric} (%), {ours_label}")
+    ax.grid(alpha=0.3)
+    ax.set_title(title, fontsize=10)
+    fig.tight_layout()
+    return fig
