@@ -64,6 +64,8 @@ PAPER_FLOATS: tuple[PaperFloat, ...] = (
     PaperFloat("Table 4", "fusion weight w", "03_fusion", "4. The fusion weight", ("03_table4_fusion_weight",)),
     PaperFloat("Table 7", "SD vs ControlNet depth features (appendix)", "01_diffusion_features",
                "7. Does the depth side need ControlNet?", ("01_sd_vs_controlnet",)),
+    PaperFloat("Table 8", "layer combinations on the validation scene (appendix)", "06_appendix",
+               "4. Layer combinations", ("06_layer_combinations",)),
     PaperFloat("Table 9", "PnP vs Kabsch: RR threshold ladders (appendix), under depth error", "02_geometric_features",
                "Beside the paper's Table 9", ("02_depth_error_sweep",)),
     PaperFloat("Table 9", "PnP vs Kabsch: RR threshold ladders (appendix)", "04_benchmark",
