@@ -15,8 +15,30 @@ Beside it, never imported by it: :mod:`freereg_lib.report` (the notebooks' figur
 :mod:`freereg_lib.commands` (``freereg register``, ``freereg batch``, ...),
 :mod:`freereg_lib.training` and :mod:`freereg_lib.teaching`.
 """
+import importlib
+
 from freereg_lib.config import FreeRegConfig, config_for
 from freereg_lib.data.pair import Pair
 
 __all__ = ["FreeRegConfig", "config_for", "Pair"]
 __version__ = "0.1.0"
+
+# The modules a notebook uses, by their short names: ``from freereg_lib import cameras, plots``
+# imports ``freereg_lib.geometry.cameras`` and ``freereg_lib.report.plots`` on first use (PEP 562),
+# so a notebook's imports stay one line while the files keep their layer folders.
+SHORT_NAMES = {
+    **{m: f"freereg_lib.geometry.{m}" for m in ("cameras", "projection", "densify", "keypoints", "pose", "metrics")},
+    **{m: f"freereg_lib.data.{m}" for m in ("synthetic", "datasets", "sources", "paper")},
+    **{m: f"freereg_lib.features.{m}" for m in ("matching", "geometric", "baseline")},
+    "register": "freereg_lib.pipeline.register",
+    **{m: f"freereg_lib.report.{m}" for m in ("plots", "charts", "params", "registration", "pair_files")},
+    **{m: f"freereg_lib.commands.{m}" for m in ("batch", "cache", "user_inputs")},
+}
+
+
+def __getattr__(name: str):
+    if name in SHORT_NAMES:
+        module = importlib.import_module(SHORT_NAMES[name])
+        globals()[name] = module
+        return module
+    raise AttributeError(f"module 'freereg_lib' has no attribute {name!r}")

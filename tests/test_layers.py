@@ -279,3 +279,19 @@ def test_importing_the_pipeline_loads_no_tool():
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == "", f"import freereg_lib.pipeline loaded: {proc.stdout}"
+
+
+def test_the_short_names_are_the_layer_modules_loaded_on_first_use():
+    code = ("import sys, freereg_lib\n"
+            "assert 'freereg_lib.report.plots' not in sys.modules\n"
+            "from freereg_lib import cameras, plots, register\n"
+            "import freereg_lib.geometry.cameras as c, freereg_lib.report.plots as p, freereg_lib.pipeline.register as r\n"
+            "assert (cameras, plots, register) == (c, p, r)\n"
+            "import importlib\n"
+            "assert all(importlib.import_module(m) for m in freereg_lib.SHORT_NAMES.values())\n"
+            "try:\n    freereg_lib.nothing\nexcept AttributeError as e:\n    print(e)\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr
+    assert "has no attribute 'nothing'" in proc.stdout
+    for short, module in __import__("freereg_lib").SHORT_NAMES.items():
+        assert module.rsplit(".", 1)[1] == short and layer_of(module) in METHOD + TOOLS, (short, module)

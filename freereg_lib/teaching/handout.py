@@ -16,6 +16,7 @@ import shutil
 import zipfile
 from pathlib import Path
 
+from freereg_lib import SHORT_NAMES
 from freereg_lib.teaching import notebooks as N
 
 PACKAGE = Path(__file__).resolve().parents[1]
@@ -61,7 +62,9 @@ def _imported(tree: ast.AST, name: str, is_package: bool) -> set[str]:
                 base = name.split(".")[: len(name.split(".")) - node.level + is_package]
                 module = ".".join(base + ([module] if module else []))
             found |= {module} | {f"{module}.{a.name}" for a in node.names}
-    return {m for m in found if m.split(".")[0] == PACKAGE.name}
+    found = {m for m in found if m.split(".")[0] == PACKAGE.name}
+    # ``from freereg_lib import cameras``: the package's short names for its modules (SHORT_NAMES)
+    return {SHORT_NAMES.get(m.split(".", 1)[1], m) if m.count(".") == 1 else m for m in found}
 
 
 def needed_modules(student_notebooks: list[Path]) -> set[Path]:
