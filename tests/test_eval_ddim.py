@@ -60,3 +60,14 @@ def test_an_empty_rows_file_is_refused(tmp_path, capsys):
     with pytest.raises(SystemExit):
         evaluate_ddim.main(["--summarize", "--rows", str(rows)])
     assert "no complete pair" in capsys.readouterr().err
+
+
+def test_a_malformed_rows_file_stops_with_one_line_naming_it(tmp_path, capsys):
+    from freereg_lib.training import evaluate_combinations, evaluate_layers
+
+    rows = tmp_path / "rows.jsonl"
+    rows.write_text('{"k": 0}\nnot json\n')
+    for main in (evaluate_ddim.main, evaluate_combinations.main, evaluate_layers.main):
+        with pytest.raises(SystemExit) as exc:
+            main(["--summarize", "--rows", str(rows)])
+        assert exc.value.code == 2 and f"--rows {rows}, line 2: not a row" in capsys.readouterr().err

@@ -270,15 +270,21 @@ def test_no_library_module_reads_a_repository_path():
     assert bad == [], "paths are arguments; the commands set their defaults:\n" + "\n".join(bad)
 
 
+def _python(code: str) -> str:
+    """``code`` run by a fresh interpreter (nothing imported before it); its stdout."""
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr
+    return proc.stdout
+
+
 def test_importing_the_pipeline_loads_no_tool():
     code = ("import sys, freereg_lib.pipeline\n"
             "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('dask', 'distributed', 'papermill', "
             "'nbconvert', 'nbformat') or m.startswith(('freereg_lib.training', 'freereg_lib.teaching', "
             "'freereg_lib.commands', 'freereg_lib.report')))\n"
             "print('\\n'.join(bad))")
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=ROOT)
-    assert proc.returncode == 0, proc.stderr
-    assert proc.stdout.strip() == "", f"import freereg_lib.pipeline loaded: {proc.stdout}"
+    out = _python(code)
+    assert out.strip() == "", f"import freereg_lib.pipeline loaded: {out}"
 
 
 def test_the_short_names_are_the_layer_modules_loaded_on_first_use():
@@ -290,8 +296,6 @@ def test_the_short_names_are_the_layer_modules_loaded_on_first_use():
             "import importlib\n"
             "assert all(importlib.import_module(m) for m in freereg_lib.SHORT_NAMES.values())\n"
             "try:\n    freereg_lib.nothing\nexcept AttributeError as e:\n    print(e)\n")
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=ROOT)
-    assert proc.returncode == 0, proc.stderr
-    assert "has no attribute 'nothing'" in proc.stdout
+    assert "has no attribute 'nothing'" in _python(code)
     for short, module in __import__("freereg_lib").SHORT_NAMES.items():
         assert module.rsplit(".", 1)[1] == short and layer_of(module) in METHOD + TOOLS, (short, module)

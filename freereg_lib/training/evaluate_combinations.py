@@ -27,7 +27,7 @@ from freereg_lib.data import paper, synthetic
 from freereg_lib.models import get_backend
 from freereg_lib.training.evaluate import paired_permutation_p
 from freereg_lib.training.evaluate_layers import pair_rows
-from freereg_lib.training.evaluate_split import _done, _git_head, _stat, load_rows, publish
+from freereg_lib.training.evaluate_split import _done, _git_head, _stat, publish, rows_to_summarize
 from freereg_lib.training.splits import SPLITS
 
 CHOSEN = [0, 4, 6]
@@ -122,11 +122,7 @@ def main(argv=None) -> int:
     if not args.summarize:
         run(args.split, args.pairs or SPLITS[args.split].n_pairs, Path(args.rows))
         return 0
-    if not Path(args.rows).is_file():
-        p.error(f"--rows {args.rows}: no such file (run without --summarize first)")
-    recs = load_rows(args.rows)
-    if not recs:
-        p.error(f"--rows {args.rows}: no complete pair 0..n-1 to summarize")
+    recs = rows_to_summarize(p, args.rows)
     res = summarize(recs, args.split)
     res["commands"] = [f"python -m freereg_lib.training.evaluate_combinations --split {args.split} --pairs {len(recs)} "
                        f"--rows {args.rows}",

@@ -31,7 +31,7 @@ from freereg_lib.config import FreeRegConfig
 from freereg_lib.data import synthetic
 from freereg_lib.models import get_backend
 from freereg_lib.training.evaluate import bootstrap_ci, paired_permutation_p
-from freereg_lib.training.evaluate_split import _done, _git_head, _plain, _stat, load_rows, publish
+from freereg_lib.training.evaluate_split import _done, _git_head, _plain, _stat, publish, rows_to_summarize
 from freereg_lib.training.splits import SPLITS
 
 STEPS = (5, 10, 15, 20)
@@ -142,11 +142,7 @@ def main(argv=None) -> int:
     if not args.summarize:
         run(args.split, args.pairs, Path(args.rows), tuple(args.steps))
         return 0
-    if not Path(args.rows).is_file():
-        p.error(f"--rows {args.rows}: no such file (run without --summarize first)")
-    recs = load_rows(args.rows)
-    if not recs:
-        p.error(f"--rows {args.rows}: no complete pair 0..n-1 to summarize")
+    recs = rows_to_summarize(p, args.rows)
     res = summarize(recs, args.split)
     res["commands"] = [f"python -m freereg_lib.training.evaluate_ddim --split {args.split} --pairs {len(recs)} "
                        f"--steps {' '.join(str(s) for s in res['steps'])} --rows {args.rows}",

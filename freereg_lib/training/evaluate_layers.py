@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from freereg_lib.training.evaluate import paired_permutation_p
-from freereg_lib.training.evaluate_split import _done, _git_head, _stat, load_rows, publish
+from freereg_lib.training.evaluate_split import _done, _git_head, _stat, publish, rows_to_summarize
 from freereg_lib.training.splits import SPLITS
 
 LAYER_SETS = {"a": [0], "b": [1], "c": [2], "d": [3], "e": [4], "f": [5], "g": [6], "h": [7], "i": [8],
@@ -137,7 +137,7 @@ def main(argv=None) -> int:
     if not args.summarize:
         run(args.split, args.pairs or SPLITS[args.split].n_pairs, Path(args.rows[0]), args.shard)
         return 0
-    res = summarize(load_rows(args.rows), args.split)
+    res = summarize(rows_to_summarize(p, args.rows), args.split)
     res["commands"] = args.run_command + [
         f"python -m freereg_lib.training.evaluate_layers --split {args.split} --summarize --rows {' '.join(args.rows)}"
         + (f" --out {args.out}" if args.out else "")]

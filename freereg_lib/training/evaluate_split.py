@@ -118,6 +118,9 @@ def load_rows(rows_paths) -> list[dict]:
     for path in [rows_paths] if isinstance(rows_paths, (str, Path)) else rows_paths:
         try:
             lines = Path(path).read_text().splitlines()
+        except FileNotFoundError:
+            raise RowsError(f"--rows {path}: cannot read it: no such file (run the command without --summarize "
+                            "first)") from None
         except (OSError, UnicodeDecodeError) as exc:
             raise RowsError(f"--rows {path}: cannot read it ({type(exc).__name__}: {exc.strerror or exc})") from None
         for no, line in enumerate(lines, 1):
@@ -136,6 +139,19 @@ def load_rows(rows_paths) -> list[dict]:
     while n in recs:
         n += 1
     return [recs[k] for k in range(n)]
+
+
+def rows_to_summarize(parser, rows_paths) -> list[dict]:
+    """:func:`load_rows` for a command's ``--summarize``: a rows file that cannot be read, or none
+    with pair 0, stops the command with one line naming it (``parser.error``, exit 2)."""
+    try:
+        recs = load_rows(rows_paths)
+    except RowsError as exc:
+        parser.error(str(exc))
+    if not recs:
+        shown = rows_paths if isinstance(rows_paths, (str, Path)) else " ".join(map(str, rows_paths))
+        parser.error(f"--rows {shown}: no row of pair k = 0, no complete pair 0..n-1 to summarize")
+    return recs
 
 
 def parse_shard(shard: str) -> tuple[int, int]:
@@ -247,11 +263,9 @@ def main(argv=None) -> int:
         parse_shard(args.shard)
         if args.pairs is not None and args.pairs < 1:
             raise ValueError(f"--pairs must be >= 1, got {args.pairs}")
-        recs = load_rows(args.rows) if args.summarize else None
-        if args.summarize and not recs:
-            raise ValueError(f"--rows {' '.join(args.rows)}: no row of pair k = 0, no complete prefix to summarize")
     except ValueError as exc:
         p.error(str(exc))
+    recs = rows_to_summarize(p, args.rows) if args.summarize else None
     if not args.summarize:
         run(args.split, args.pairs or split.n_pairs, Path(args.rows[0]), args.shard, args.weights,
             cache=Path(args.cache) if args.cache else None)
