@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable
 
+from freereg_lib.commands.book_inputs import exit_on_bad_sources
 from freereg_lib.report.plots import compact_png
 
 ROOT = Path.cwd()  # the project folder the command runs in (make runs there); never where this file lies
@@ -331,6 +332,7 @@ def main(argv: Iterable[str] | None = None) -> int:
     ap.add_argument("--out", default=None, help="site folder (default <run>/site)")
     ap.add_argument("--figures", default=None, help="the run's figures folder (default <run>/figures or figures/)")
     args = ap.parse_args(list(argv) if argv is not None else None)
+    exit_on_bad_sources(args.run, ROOT / "docs", [ROOT / rel for rel in EXTRA_PAGES])  # one line, exit 2
     try:
         index = build_book(args.run, args.out, args.figures)
     except BookError as exc:
