@@ -51,6 +51,11 @@ class FreeRegConfig:
     controlnet_scale: float = ranged(1.0, "[0, inf)")  # weight of the ControlNet's residuals (diffusers' conditioning_scale); official 1
     batched_guidance: bool = False  # both guidance branches in one UNet call (a GPU speed-up)
     pair_batch: int = ranged(1, "[1, inf)")  # pairs whose diffusion features run as one batch (a GPU speed-up)
+    # torch's threads while a model runs on the CPU. 1: the same numbers whatever the machine's load
+    # (reductions split over 2 threads round differently) and no oversubscribed cores on a busy
+    # machine (one pair's micro diffusion maps: 2.0 s at 1 thread busy or quiet, 12.1 s at 2 threads
+    # beside one busy process). 0: torch's own count (a core each; the real models on a many-core CPU).
+    cpu_threads: int = ranged(1, "[0, inf)")
     prompt: str = INDOOR_PROMPT
     negative_prompt: str = NEGATIVE_PROMPT
     layers: tuple[int, ...] = ranged((0, 4, 6), "[0, 8]", distinct=True)  # decoder layers 0..8
@@ -144,7 +149,7 @@ class FreeRegConfig:
 # exactly one group, and ``FreeRegConfig.group(name)`` reads one.
 GROUPS: dict[str, tuple[str, ...]] = {
     "run": ("outdoor", "seed", "extra"),
-    "backend": ("sd_unet_variant", "controlnet", "dtype", "batched_guidance", "pair_batch"),
+    "backend": ("sd_unet_variant", "controlnet", "dtype", "batched_guidance", "pair_batch", "cpu_threads"),
     "diffusion": ("resize_hw", "t_hat", "ddim_steps", "ddim_eta", "guidance_w", "controlnet_scale", "prompt",
                   "negative_prompt", "layers", "pca_dim", "pca_device"),
     "projection": ("densify", "depth_min", "depth_max", "edge_filter_m", "cloud_far_m", "cloud_near_m",

@@ -13,8 +13,10 @@ the one exception for missing weights.
 """
 from __future__ import annotations
 
+import functools
 import re
 import zlib
+from contextlib import contextmanager
 from typing import Sequence
 
 import cv2
@@ -306,3 +308,30 @@ def seed_from(*parts) -> int:
             v = int(p) & 0xFFFFFFFFFFFF
         h = (h ^ v) * 0x100000001B3 % (1 << 63)
     return h
+
+
+@contextmanager
+def cpu_threads(device, n: int):
+    """torch's intra-op thread count set to ``n`` for the block when ``device`` is the CPU, then
+    restored (``n = 0`` or another device: left as it is). See ``FreeRegConfig.cpu_threads``."""
+    import torch
+
+    before = torch.get_num_threads()
+    change = n > 0 and torch.device(device).type == "cpu" and before != n
+    if change:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        if change:
+            torch.set_num_threads(before)
+
+
+def on_cpu_threads(method):
+    """Run a model method under ``cpu_threads(self.device, self.cfg.cpu_threads)`` (backends and
+    :class:`~.diffusion.DiffusionFeatures` hold both attributes)."""
+    @functools.wraps(method)
+    def run(self, *args, **kwargs):
+        with cpu_threads(self.device, self.cfg.cpu_threads):
+            return method(self, *args, **kwargs)
+    return run

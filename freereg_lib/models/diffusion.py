@@ -39,6 +39,7 @@ from freereg_lib.models.base import (
     depth_hint,
     feature_timestep,
     n_guided_steps,
+    on_cpu_threads,
     rgb_to_unit,
     seed_from,
 )
@@ -343,6 +344,7 @@ class DiffusionFeatures:
         t = self._timestep(feature_timestep(cfg.t_hat, cfg.ddim_steps))
         return self.scheduler.add_noise(z, noise, t.cpu()).to(self.dtype), t
 
+    @on_cpu_threads
     def rgb_batch(self, images, layers=None, noise_tag: str = "rgb-latent") -> list[dict[int, np.ndarray]]:
         """Decoder ``layers`` (all nine when None) of RGB images ``(H, W, 3) uint8``, one VAE
         and one UNet call for the whole list; ``{layer: (C, h, w) float32}`` per image.
@@ -355,6 +357,7 @@ class DiffusionFeatures:
             return run_tapped(self.unet, zt, t, layers=layers, encoder_hidden_states=cond.repeat(len(images), 1, 1),
                               return_dict=False)
 
+    @on_cpu_threads
     def depth_pass_on_images(self, images, depths, layers=None,
                              noise_tag: str = "depth-camera-image") -> list[dict[int, np.ndarray]]:
         """A diagnostic: the depth branch's feature pass (ControlNet with the hints of
@@ -409,6 +412,7 @@ class DiffusionFeatures:
         cond, uncond = self.text_embeddings()
         return hint, cond.repeat(len(depths), 1, 1), uncond.repeat(len(depths), 1, 1)
 
+    @on_cpu_threads
     def depth_batch(self, depths, layers=None) -> list[dict[int, np.ndarray]]:
         """Decoder ``layers`` (all nine when None) of depth maps ``(H, W)`` (metres, 0 = none),
         the DDIM steps of the whole list batched; ``{layer: (C, h, w) float32}`` per map."""
@@ -429,6 +433,7 @@ class DiffusionFeatures:
                 return_dict=False,
             )
 
+    @on_cpu_threads
     def generate(self, depth: np.ndarray, seeds=(0,)) -> list[np.ndarray]:
         """Images ``(h, w, 3) uint8`` at the diffusion input size that the ControlNet-guided DDIM
         sampling (all ``cfg.ddim_steps`` steps, the feature path's guidance and eta) draws from

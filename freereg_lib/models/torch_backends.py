@@ -21,7 +21,7 @@ import numpy as np
 
 from freereg_lib.models import weights as W
 from freereg_lib.models import zoedepth  # called through the module: tests replace its loaders
-from freereg_lib.models.base import Backend, MissingWeightsError, check_device
+from freereg_lib.models.base import Backend, MissingWeightsError, check_device, on_cpu_threads
 from freereg_lib.models.diffusion import (
     DiffusionFeatures,
     build_tiny_diffusion,
@@ -122,9 +122,11 @@ class _TorchBackend(Backend):
         """The DDIM steps of all ``depths`` batched, stopped after the last of ``layers``."""
         return self.diffusion.depth_batch(list(depths), layers)
 
+    @on_cpu_threads
     def mono_depth(self, image: np.ndarray, depth_gt: np.ndarray | None = None) -> np.ndarray:
         return self.zoe(image)
 
+    @on_cpu_threads
     def mono_depth_batch(self, images, depth_gts=None) -> list[np.ndarray]:
         """ZoeDepth on all ``images``, same-size images (and their flips) in one call."""
         return self.zoe.batch(list(images))
@@ -355,6 +357,7 @@ class MicroBackend(_TorchBackend):
             return MD.estimator(MD.build(self.seed), self.device)
         return MD.load(self.depth_weights_dir, self.device)
 
+    @on_cpu_threads
     def mono_depth(self, image: np.ndarray, depth_gt: np.ndarray | None = None) -> np.ndarray:
         """Metric depth ``(H, W)`` of ``image``: the micro ZoeDepth (``depth_gt`` unused), or
         the stub's designed error of ``depth_gt`` with ``mono_depth="stub"``."""
@@ -365,6 +368,7 @@ class MicroBackend(_TorchBackend):
             self._stub = StubBackend(self.cfg, mono_mae=self.mono_mae)
         return self._stub.mono_depth(image, depth_gt)
 
+    @on_cpu_threads
     def mono_depth_batch(self, images, depth_gts=None) -> list[np.ndarray]:
         """The micro ZoeDepth on all ``images`` in one call per size (flips included), or the
         stub per image."""
