@@ -1,0 +1,121 @@
+"""Prose that cannot drift from its output: :mod:`freereg_lib.report.prose` on a run and on planted faults.
+
+* Notebook 00 (the cheapest notebook with glued values, no model) runs through papermill with other
+  parameters than its defaults, once for the module; the checker finds nothing in the executed copy.
+* A contradiction planted into a copy of that executed notebook, and into a hand-made tiny notebook
+  (the prose says 384 channels beside a printed ``(1408, 304)``; "RR 50.0 %" beside a printed 33.3), is
+  flagged, naming the cell; so is a ``{glue}`` name the run did not glue.
+* The committed notebooks 00-05 state no number by hand that is not exempt, and every glue name their
+  Markdown references is glued by one of their code cells (a static check: no run needed).
+"""
+from __future__ import annotations
+
+import copy
+import re
+from pathlib import Path
+
+import pytest
+
+from freereg_lib.report.prose import Problem, check_notebook, glue_references, glued_names, stated_numbers
+
+nbformat = pytest.importorskip("nbformat")
+papermill = pytest.importorskip("papermill")
+
+ROOT = Path(__file__).resolve().parent.parent
+NOTEBOOKS = ROOT / "notebooks"
+CHECKED = sorted(p for p in NOTEBOOKS.glob("0[0-5]_*.ipynb"))  # 06 is checked by the same rules once it glues
+
+
+@pytest.fixture(scope="module")
+def executed(tmp_path_factory) -> dict:
+    """Notebook 00 run with another seed and another corruption rate than its defaults (about 15 s)."""
+    tmp = tmp_path_factory.mktemp("prose")
+    out = tmp / "00_preliminaries.executed.ipynb"
+    papermill.execute_notebook(
+        str(NOTEBOOKS / "00_preliminaries.ipynb"), str(out), kernel_name="python3", cwd=str(NOTEBOOKS),
+        progress_bar=False,
+        parameters={"seed": 3, "corrupt_fraction": 0.5, "out_dir": str(tmp / "out"), "figures_dir": str(tmp / "fig")},
+    )
+    return nbformat.read(out, as_version=4)
+
+
+def _markdown(nb: dict, cell_id: str) -> dict:
+    return next(c for c in nb["cells"] if c.get("id") == cell_id and c["cell_type"] == "markdown")
+
+
+def _tiny(markdown: str, printed: str, glued: dict[str, object] | None = None) -> dict:
+    """A two-cell notebook: Markdown, then a code cell that printed ``printed`` and glued ``glued``."""
+    nb = nbformat.v4.new_notebook()
+    md = nbformat.v4.new_markdown_cell(markdown)
+    md.id = "prose"
+    code = nbformat.v4.new_code_cell("print(...)")
+    code.id = "run"
+    code.outputs = [nbformat.v4.new_output("stream", name="stdout", text=printed)]
+    for name, value in (glued or {}).items():
+        code.outputs.append(nbformat.v4.new_output(
+            "display_data", data={"application/papermill.record/text/plain": repr(value)},
+            metadata={"scrapbook": {"name": name, "mime_prefix": "application/papermill.record/"}}))
+    nb.cells = [md, code]
+    return nb
+
+
+def test_an_executed_run_with_other_parameters_has_no_problem(executed):
+    problems = check_notebook(executed, "00_preliminaries")
+    assert problems == [], "\n".join(map(str, problems))
+    referenced = {n for c in executed["cells"] if c["cell_type"] == "markdown" for n in glue_references(c["source"])}
+    assert referenced and referenced <= glued_names(executed)
+
+
+def test_a_number_planted_into_the_executed_run_is_flagged(executed):
+    nb = copy.deepcopy(executed)
+    cell = _markdown(nb, "c36")
+    cell["source"] += "\nWith half the matches corrupted, IR is 0.62 on this pair."
+    problems = check_notebook(nb, "00_preliminaries")
+    assert [(p.cell_id, p.kind, p.found) for p in problems] == [("c36", "number", "0.62")], problems
+    assert "cell " in str(problems[0]) and "(id c36)" in str(problems[0])
+
+
+def test_a_glue_name_the_run_did_not_glue_is_flagged(executed):
+    nb = copy.deepcopy(executed)
+    _markdown(nb, "c33")["source"] += "\nThe feature pass runs at {glue:text}`t_feature`."
+    problems = check_notebook(nb, "00_preliminaries")
+    assert [(p.cell_id, p.kind, p.found) for p in problems] == [("c33", "glue", "t_feature")]
+
+
+@pytest.mark.parametrize("markdown, printed, flagged", [
+    ("The descriptors have 384 channels.", "descriptors: image (1408, 304), depth (1408, 304)", ["384"]),
+    ("FreeReg registers RR 50.0 % of the pairs.", "RR with the fused matches: Kabsch 33.3, PnP 33.3", ["50.0 %"]),
+    # The paper's own number passes only where the sentence says it is the paper's.
+    ("Kabsch registers RR 63.8 % of the pairs.", "RR 33.3", ["63.8 %"]),
+])
+def test_a_contradiction_in_a_tiny_notebook_is_flagged(markdown, printed, flagged):
+    problems = check_notebook(_tiny(markdown, printed), "tiny")
+    assert [p.found for p in problems] == flagged
+    assert all(isinstance(p, Problem) and p.cell == 0 and p.cell_id == "prose" for p in problems)
+
+
+def test_glued_numbers_paper_numbers_and_names_of_things_pass():
+    markdown = ("The descriptors have {glue:text}`channels` channels, and RR is {glue:text}`rr:.1f` %; the paper's "
+                "RR is 63.8 % (Table 1, main results). The layers (0, 4, 6) of Table 2 rows j-m, Sec. 3.4, Fig. 4c, "
+                "notebook 03 and `range(1000, 0, -50)` name things.")
+    nb = _tiny(markdown, "(1408, 304)\nRR 33.3", glued={"channels": 304, "rr": 33.33})
+    assert check_notebook(nb, "tiny") == []
+    assert [p.found for p in check_notebook(_tiny(markdown, "", glued={"channels": 304}), "tiny")] == ["rr"]
+
+
+@pytest.mark.parametrize("path", CHECKED, ids=lambda p: p.stem)
+def test_the_committed_notebooks_state_no_number_by_hand_and_glue_what_they_reference(path):
+    nb = nbformat.read(path, as_version=4)
+    from freereg_lib.report.prose import COMMON, FACTS
+
+    facts = COMMON + FACTS.get(path.stem, ())
+    typed = [(c.get("id"), n, ctx) for c in nb.cells if c.cell_type == "markdown"
+             for n, ctx in stated_numbers(c.source, facts)]
+    assert not typed, f"{path.name}: numbers typed by hand (glue them, or declare a fact in prose.FACTS): {typed}"
+    # Every referenced name must be glued by a code cell (an f-string name matches any text in its braces).
+    glue_calls = [re.sub(r"\\\{[^}]*\\\}", ".+", re.escape(m.group(1)))
+                  for c in nb.cells if c.cell_type == "code"
+                  for m in re.finditer(r"""\bglue\(\s*f?["']([^"']+)["']""", c.source)]
+    missing = [n for c in nb.cells if c.cell_type == "markdown" for n in glue_references(c.source)
+               if not any(re.fullmatch(g, n) for g in glue_calls)]
+    assert not missing, f"{path.name}: glue names referenced but glued by no code cell: {missing}"
