@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Iterable
 
 from freereg_lib.commands.book_inputs import exit_on_bad_sources
+from freereg_lib.data import paper
 from freereg_lib.report.plots import compact_png
 
 ROOT = Path.cwd()  # the project folder the command runs in (make runs there); never where this file lies
@@ -44,10 +45,20 @@ class PaperFloat:
     notebook: str             # notebook stem
     section: str              # the start of the section's heading text (without the #s)
     figures: tuple[str, ...]  # figure file stems (figures/<stem>.png)
+    reason: str = ""          # for a float with no re-run: why, and what would draw it (no notebook then)
 
 
-# Every float re-drawn, in the paper's order (the numbering of the ICLR 2024 paper and its appendix).
+def _not_rerun(number: str, shows: str, reason: str) -> PaperFloat:
+    return PaperFloat(number, shows, "", "", (), reason)
+
+
+# Every float of the paper, in its order (the numbering of the ICLR 2024 paper and its appendix): the
+# section that re-draws it, or why none does. :func:`unmapped_floats` checks it against the paper's list.
 PAPER_FLOATS: tuple[PaperFloat, ...] = (
+    _not_rerun("Fig. 1", "teaser", "a drawing of the idea, no measurement; notebook 00, section 1 states the task"),
+    PaperFloat("Fig. 2-I", "images generated from one depth map (the idea, panel I)", "01_diffusion_features",
+               "8. A depth map admits many images", ("01_generated_from_depth",)),
+    _not_rerun("Fig. 3", "pipeline", "not drawn yet: one pair's inputs, feature maps, matches and pose in one panel"),
     PaperFloat("Fig. 4c", "PCA of decoder features (diffusion feature extraction)", "01_diffusion_features",
                "3. What the layers see", ("01_pca_layers",)),
     PaperFloat("Fig. 5 b-d", "fused features: D / G / fused feature maps", "03_fusion", "2. The fusion",
@@ -56,6 +67,7 @@ PAPER_FLOATS: tuple[PaperFloat, ...] = (
                "3. Correspondences from D, G and fused features", ("03_matches_d_g_fused",)),
     PaperFloat("Fig. 7", "rotation and translation error curves (appendix)", "04_benchmark",
                "5. Rotation and translation error curves", ("04_rotation_error_curves", "04_translation_error_curves")),
+    _not_rerun("Fig. 6", "qualitative correspondences", "not drawn yet: correct and wrong matches of real pairs"),
     PaperFloat("Table 1", "main results, beside the re-run", "04_benchmark", "3. Table 1 beside the paper's",
                ("04_table1_side_by_side",)),
     PaperFloat("Table 2", "layer selection", "01_diffusion_features", "5. Which layers?",
@@ -63,6 +75,10 @@ PAPER_FLOATS: tuple[PaperFloat, ...] = (
     PaperFloat("Table 3", "diffusion step t_hat", "01_diffusion_features", "6. Which diffusion step",
                ("01_table3_t_hat",)),
     PaperFloat("Table 4", "fusion weight w", "03_fusion", "4. The fusion weight", ("03_table4_fusion_weight",)),
+    _not_rerun("Table 5", "RGBD-Scenes-v2 (appendix)",
+               "needs the coarse-to-fine matcher the appendix describes and a loader of scenes 11-14; not built"),
+    _not_rerun("Table 6", "other vision backbones (appendix)",
+               "needs DINOv2 / CLIP weights read on the depth map as RGB; Table 7's SD row is the nearest re-run"),
     PaperFloat("Table 7", "SD vs ControlNet depth features (appendix)", "01_diffusion_features",
                "7. Does the depth side need ControlNet?", ("01_sd_vs_controlnet",)),
     PaperFloat("Table 8", "layer combinations on the validation scene (appendix)", "06_appendix",
@@ -71,9 +87,38 @@ PAPER_FLOATS: tuple[PaperFloat, ...] = (
                "Beside the paper's Table 9", ("02_depth_error_sweep",)),
     PaperFloat("Table 9", "PnP vs Kabsch: RR threshold ladders (appendix)", "04_benchmark",
                "4. Registration recall over threshold ladders", ("04_rr_ladder",)),
+    _not_rerun("Table 10", "mono-modality registration (appendix)",
+               "not re-run yet: RGB to RGB and depth to depth on the pairs of Table 1"),
+    _not_rerun("Table 11", "fine-tuning the ControlNet (appendix)",
+               "needs a ControlNet fine-tuned on sensor depth; the micro ControlNet has not been fine-tuned"),
+    _not_rerun("Table 12", "2D3D-MATR against fine-tuned FreeReg (appendix)",
+               "needs Table 11's fine-tuned model and 2D3D-MATR; neither runs here"),
     PaperFloat("Table 13", "DDIM iterations: faster features (appendix)", "06_appendix", "3. The verdict",
                ("06_table13_ddim",)),
+    _not_rerun("Fig. 8", "point-cloud features (appendix)", "not drawn yet: PCA colours of the cloud's features"),
+    _not_rerun("Fig. 9", "more qualitative results (appendix)",
+               "not drawn yet: feature maps and matches of real pairs"),
+    _not_rerun("Fig. 10", "patch warping (appendix)",
+               "not drawn yet: image patches warped onto the cloud by the matches"),
 )
+
+
+def float_number(label: str) -> str:
+    """The paper's float a row label names, without the panels that follow its number."""
+    m = re.match(r"(Fig\.|Table) (\d+)", label)
+    if m is None:
+        raise ValueError(f"{label!r} names no paper float (expected 'Fig. N...' or 'Table N...')")
+    return f"{m.group(1)} {m.group(2)}"
+
+
+def unmapped_floats(rows: Iterable[PaperFloat] = PAPER_FLOATS) -> list[str]:
+    """The paper's floats (``freereg_lib/data/paper_floats.csv``) with neither a section nor a reason
+    among ``rows``, and rows naming a float the paper does not have."""
+    listed = list(paper.floats()["number"])
+    covered = {float_number(f.number) for f in rows if (f.notebook and f.section) or f.reason}
+    named = {float_number(f.number) for f in rows}
+    return ([f"{n}: no section and no reason" for n in listed if n not in covered]
+            + [f"{n}: not a float of the paper" for n in sorted(named - set(listed))])
 
 BACKEND_NOTES = {
     "micro": "Miniature SD-layout models trained in this repository on synthetic rooms: a learned miniature of "
@@ -197,6 +242,9 @@ def _float_rows(pages: list[NotebookPage], figures_dir: Path, src: Path) -> list
     by_stem = {p.stem: p for p in pages}
     rows = []
     for f in PAPER_FLOATS:
+        if f.reason:
+            rows.append(f"| {f.number} | {f.shows} | not re-run: {f.reason} | |")
+            continue
         page = by_stem.get(f.notebook)
         if page is None:
             where = f"`{f.notebook}` (not in this run)"
@@ -274,17 +322,23 @@ def write_index(src: Path, pages: list[NotebookPage], figures_dir: Path, docs: l
     for p in pages:
         status = " (**failed**: the page shows the error)" if p.failed else ""
         nb_rows.append(f"| [{p.title.replace('|', '/')}](notebooks/{p.stem}.ipynb){status} | {p.backend} |")
+    unmapped = unmapped_floats()
+    if unmapped:
+        raise BookError("the index of the paper's floats is incomplete: " + "; ".join(unmapped))
     float_rows = ["| paper | what it shows | notebook section | figure of this run |", "|---|---|---|---|"]
     float_rows += _float_rows(pages, figures_dir, src)
+    redrawn = sorted({float_number(f.number) for f in PAPER_FLOATS if not f.reason})
     text = "\n".join([
         "# FreeReg companion", "",
         f"The notebooks of the run `{run_dir.name}`, executed top to bottom with papermill, the reference pages "
         "and the API reference of the method. Backends of this run: "
         + "; ".join(f"**{b}** (notebooks {', '.join(s)})" for b, s in backends.items()) + ".", "",
         *[f"- **{b}**: {BACKEND_NOTES.get(b, 'see the README, Backends.')}" for b in backends], "",
-        "## The paper's figures and tables re-drawn here", "",
-        "Numbers as in the paper (FreeReg, ICLR 2024); each row links to the notebook section that re-draws the "
-        "float, with the figure this run drew (the notebook page has it at full size).", "",
+        "## The paper's figures and tables", "",
+        f"Numbers as in the paper (FreeReg, ICLR 2024, with its appendix). {len(redrawn)} of its "
+        f"{len(paper.floats())} floats are re-drawn: each such row links to the notebook section that re-draws "
+        "it, with the figure this run drew (the notebook page has it at full size); the other rows say why "
+        "there is no re-run and what would draw it.", "",
         *float_rows, "",
         "## The notebooks", "", *nb_rows, "",
         "```{toctree}", ":caption: Notebooks", ":maxdepth: 1", "", *[f"notebooks/{p.stem}" for p in pages], "```", "",

@@ -10,6 +10,13 @@ from pathlib import Path
 import pandas as pd
 
 TABLES = Path(__file__).resolve().parent / "paper_tables"
+FLOATS = Path(__file__).resolve().parent / "paper_floats.csv"
+
+
+def floats() -> pd.DataFrame:
+    """The paper's 23 floats (main text and appendix, in the LaTeX's order): ``number``
+    ("Fig. 3", "Table 10"), ``kind`` (figure / table) and what each ``shows``."""
+    return pd.read_csv(FLOATS)
 
 
 def table(name: str) -> pd.DataFrame:
