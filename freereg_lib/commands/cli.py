@@ -312,7 +312,9 @@ def register_command(args) -> int:
         print(f"freereg register: cannot load the {args.backend} backend:\n{in_flags(str(exc))}", file=sys.stderr)
         return 1
     print(f"setting: {name}: {why_setting}")
-    print(f"image {pair.meta.get('image_path')} ({pair.image_size[1]} x {pair.image_size[0]}), cloud "
+    given = pair.meta.get("resampled_from")  # an image of non-square pixels (inputs_check.square_pixels)
+    print(f"image {pair.meta.get('image_path')} ({pair.image_size[1]} x {pair.image_size[0]}"
+          f"{f', resampled from {given[1]} x {given[0]} to square pixels' if given else ''}), cloud "
           f"{pair.meta.get('cloud_path')} ({len(pair.points)} points)")
     try:
         reg = R.register(pair, backend, cfg, method=args.method, solver=args.solver,

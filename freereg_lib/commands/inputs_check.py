@@ -7,7 +7,12 @@ naming the input and what was expected (docs/troubleshooting.md, "When something
 * :func:`depth_size_fits`: ``--depth-size W H`` against the depth camera's principal point
   (``--depth-K``) or, without one, against the image's aspect ratio (a depth camera given no
   intrinsics has the image's field of view); ``H W`` given for ``W H`` is named as such;
-* :func:`principal_point_order`: ``--K fx fy cy cx`` (cx and cy swapped) named as such;
+* :func:`principal_point_order`: ``--K fx fy cy cx`` (cx and cy swapped) and ``--K cx cy fx fy``
+  named as such, before the intrinsics' range check;
+* :func:`square_pixels`: an image whose pixels are not square (``fx != fy``, an anamorphic
+  or squeezed frame) is resampled to square pixels, its intrinsics and its depth map with it:
+  the learned models read an image as a square-pixel photo (ZoeDepth keeps the aspect ratio it
+  is given, so a squeezed room comes back with squeezed depth);
 * :func:`exif_orientation`: the EXIF orientation tag of a photo. Images are read **as their
   pixels are stored** (the tag is not applied, to the image or to its depth map), because
   intrinsics and depth maps describe the sensor's stored pixel grid; a photo whose tag asks for
@@ -28,6 +33,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import cv2
 import numpy as np
 from PIL import Image
 
@@ -74,9 +80,12 @@ def depth_size_fits(image_hw: tuple[int, int], depth_hw: tuple[int, int], depth_
         try:
             cameras.check_size_order(K, (Hd, Wd), "--depth-size", "--depth-K")
         except ValueError:
+            if (Hd, Wd) == tuple(int(v) for v in image_hw):  # the image's size: the size is right, K is not
+                principal_point_order(K, (Hd, Wd), "--depth-K")
             raise _error(f"--depth-size is W H (width first); you gave H W? --depth-size {Wd} {Hd} puts the depth "
                          f"image's centre at ({(Wd - 1) / 2:g}, {(Hd - 1) / 2:g}), far from --depth-K's principal "
-                         f"point ({K[0, 2]:g}, {K[1, 2]:g}); --depth-size {Hd} {Wd} fits it") from None
+                         f"point ({K[0, 2]:g}, {K[1, 2]:g}); --depth-size {Hd} {Wd} fits it (or --depth-K is "
+                         f"fx fy cy cx: give {K[0, 0]:g} {K[1, 1]:g} {K[1, 2]:g} {K[0, 2]:g})") from None
         return
     H, W = image_hw
     a_img, a_dep = W / H, Wd / Hd
@@ -90,22 +99,77 @@ def depth_size_fits(image_hw: tuple[int, int], depth_hw: tuple[int, int], depth_
            "must be the image's; give --depth-K fx fy cx cy for a depth camera of another field of view"))
 
 
+def _off_centre(x: float, y: float, W: int, H: int) -> float:
+    """How far ``(x, y)`` lies from the centre of a ``W x H`` image, in fractions of its sides (summed)."""
+    return abs(x - (W - 1) / 2) / W + abs(y - (H - 1) / 2) / H
+
+
 def principal_point_order(K: np.ndarray, image_hw: tuple[int, int], flag: str = "--K") -> None:
-    """Refuse image intrinsics whose ``cx, cy`` were given as ``cy, cx`` (``--K fx fy cy cx``): the
-    principal point near the centre of the image turned (within 10 % of the sides together) and
-    far from its centre as it is (over 20 %). Without this check the swap was blamed on
-    ``--depth-size``, which the depth camera had taken from the image. Square images pass."""
+    """Refuse image intrinsics given in another order than ``fx fy cx cy``, naming ``flag``:
+
+    * ``cx, cy`` given as ``cy, cx`` (``--K fx fy cy cx``): the principal point near the centre
+      of the image turned (within 10 % of the sides together) and far from its centre as it is
+      (over 20 %). Without this check the swap was blamed on ``--depth-size``, which the depth
+      camera had taken from the image; on a wide image (``cx > H``) it was called a principal
+      point "outside the image" made for another resolution. Square images pass;
+    * ``cx cy fx fy``: ``fx, fy`` near the image's centre (within 10 %) and ``cx, cy`` far from
+      it (over 20 %), for an image of at least 32 pixels.
+
+    Runs before :func:`~freereg_lib.geometry.cameras.check_intrinsics` (whose range check would
+    otherwise speak first)."""
     H, W = (int(v) for v in image_hw)
     K = np.asarray(K, dtype=np.float64)
-    cx, cy = K[0, 2], K[1, 2]
-    if H == W:
-        return
-    given = abs(cx - (W - 1) / 2) / W + abs(cy - (H - 1) / 2) / H
-    swapped = abs(cx - (H - 1) / 2) / H + abs(cy - (W - 1) / 2) / W
-    if swapped < 0.1 and given > 0.2:
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    if not np.all(np.isfinite([fx, fy, cx, cy])):
+        return  # check_intrinsics names non-finite entries
+    given = _off_centre(cx, cy, W, H)
+    if H != W and _off_centre(cy, cx, W, H) < 0.1 and given > 0.2:
         raise _error(f"{flag}: cx, cy look swapped: (cx, cy) = ({cx:g}, {cy:g}) is near the centre of a {H} x {W} "
                      f"(W x H) image, far from the centre ({(W - 1) / 2:g}, {(H - 1) / 2:g}) of this {W} x {H} one; "
-                     f"the order is fx fy cx cy (cx along the width): {flag} {K[0, 0]:g} {K[1, 1]:g} {cy:g} {cx:g}")
+                     f"the order is fx fy cx cy (cx along the width): {flag} {fx:g} {fy:g} {cy:g} {cx:g}")
+    if min(H, W) >= 32 and _off_centre(fx, fy, W, H) < 0.1 and given > 0.2:
+        raise _error(f"{flag}: the principal point looks given first: fx, fy = {fx:g}, {fy:g} lie near the centre "
+                     f"({(W - 1) / 2:g}, {(H - 1) / 2:g}) of this {W} x {H} image and cx, cy = {cx:g}, {cy:g} far "
+                     f"from it; the order is fx fy cx cy: {flag} {cx:g} {cy:g} {fx:g} {fy:g}")
+
+
+# --------------------------------------------------------------------------------------
+# Pixels that are not square.
+
+SQUARE_TOLERANCE = 0.01  # |fx / fy - 1| up to this is square: calibrations of one camera differ by tenths of a %
+MAX_PIXEL_ASPECT = 4.0   # fx / fy beyond this (or below its inverse) is no camera's: refused, not resampled
+
+
+def square_pixels(image: np.ndarray, K: np.ndarray, depth: np.ndarray | None = None,
+                  flag: str = "--K") -> tuple[np.ndarray, np.ndarray, np.ndarray | None, str]:
+    """``(image, K, depth, note)`` with square pixels: unchanged (and ``note == ""``) when
+    ``fx`` and ``fy`` agree within ``SQUARE_TOLERANCE``; otherwise the axis of the smaller
+    focal length is upsampled (bilinear for the image, nearest for the depth map, whose
+    edges must not blend) until ``fx = fy`` to the pixel, and ``K`` is scaled with it
+    (:func:`~freereg_lib.geometry.cameras.scale_intrinsics`). The camera is the same, so the
+    pose found on the resampled image is the pose of the image as given. ``fx / fy`` beyond
+    ``MAX_PIXEL_ASPECT`` is refused, naming ``flag``: fx and fy were most likely mistyped."""
+    K = np.asarray(K, dtype=np.float64)
+    fx, fy = float(K[0, 0]), float(K[1, 1])
+    ratio = fx / fy
+    if abs(ratio - 1.0) <= SQUARE_TOLERANCE:
+        return image, K, depth, ""
+    if not (1 / MAX_PIXEL_ASPECT <= ratio <= MAX_PIXEL_ASPECT):
+        raise _error(f"{flag}: fx = {fx:g} and fy = {fy:g} px differ {max(ratio, 1 / ratio):.3g} times; expected "
+                     f"about equal focal lengths (square pixels; up to {MAX_PIXEL_ASPECT:g} x is resampled): "
+                     "check the order fx fy cx cy and that both are in pixels of this image")
+    H, W = image.shape[:2]
+    # Upsample, never shrink: the resampled image keeps every pixel's detail.
+    w, h = (max(1, round(W / ratio)), H) if ratio < 1 else (W, max(1, round(H * ratio)))
+    K2 = cameras.scale_intrinsics(K, w / W, h / H)
+    image2 = cv2.resize(np.ascontiguousarray(image), (w, h), interpolation=cv2.INTER_LINEAR)
+    depth2 = None if depth is None else cv2.resize(np.ascontiguousarray(depth), (w, h),
+                                                   interpolation=cv2.INTER_NEAREST_EXACT)
+    note = (f"note: the image's pixels are not square ({flag}: fx = {fx:g}, fy = {fy:g} px); it is resampled from "
+            f"{W} x {H} to {w} x {h} (fx = {K2[0, 0]:.6g}, fy = {K2[1, 1]:.6g}, cx = {K2[0, 2]:.6g}, "
+            f"cy = {K2[1, 2]:.6g}), as the models read images as square-pixel photos; the pose is the same camera's, "
+            "the drawings show the resampled image")
+    return image2, K2, depth2, note
 
 
 # --------------------------------------------------------------------------------------

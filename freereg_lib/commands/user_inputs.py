@@ -114,8 +114,14 @@ def load_inputs(
     H, W = img.shape[:2]
     if K is None:
         raise InputError("missing image intrinsics: give --K fx fy cx cy (pixels) or --intrinsics FILE")
+    try:
+        K_raw = np.asarray(K, dtype=np.float64)
+    except (TypeError, ValueError):
+        K_raw = np.zeros(0)  # _as_K names it
+    if K_raw.size in (4, 9):  # the order first: a swapped cx, cy may also fall outside the image
+        IC.principal_point_order(cameras.intrinsics(*K_raw.ravel()) if K_raw.size == 4 else K_raw.reshape(3, 3),
+                                 (H, W), "--K")
     K_img = _as_K(K, (H, W), f"the image intrinsics K for {Path(image).name} ({W} x {H})")
-    IC.principal_point_order(K_img, (H, W), "--K")
     pts = _read(_read_cloud, cloud, "point cloud")
     if cloud_scale != 1.0:
         pts = pts * float(cloud_scale)
@@ -148,13 +154,21 @@ def load_inputs(
                                          depth_scale, f"--image-depth {image_depth}")
     if gt_T_cam_pc is None:  # a placeholder the pair needs: the camera at the cloud's centre
         gt_T_cam_pc = cameras.make_pose(np.eye(3), -np.median(pts, axis=0))
+    # The checks above read the files as given; the models get square pixels (inputs_check). A
+    # depth camera that is the image's own (no --depth-K, no --depth-size) is resampled with it.
+    img, K_sq, depth_gt, square_note = IC.square_pixels(img, K_img, depth_gt, "--K / --intrinsics")
+    if depth_K is None and depth_size is None:
+        K_dep, size = K_sq.copy(), tuple(img.shape[:2])
+    K_img = K_sq
     pair = Pair(
         image=img, K_image=K_img, points=pts, K_depth=K_dep, depth_size=size,
         T_pc_sensor=np.asarray(depth_pose, dtype=np.float64) if has_camera else np.eye(4),
         T_cam_pc=np.asarray(gt_T_cam_pc, dtype=np.float64), depth_gt=depth_gt,
         name=f"{Path(image).stem}-{Path(cloud).stem}",
         meta={"dataset": "files", "outdoor": bool(outdoor), "depth_camera": has_camera, "has_gt": has_gt,
-              "image_path": str(image), "cloud_path": str(cloud), "notes": [n for n in [IC.exif_note(image)] if n]},
+              "image_path": str(image), "cloud_path": str(cloud),
+              "notes": [n for n in [IC.exif_note(image), square_note] if n],
+              **({"resampled_from": (H, W)} if square_note else {})},
     )
     try:
         pair.validate()
