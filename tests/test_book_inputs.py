@@ -62,7 +62,7 @@ def test_a_bad_notebook_is_named_before_sphinx(tmp_path, capsys, monkeypatch, ki
 
 
 def test_a_docs_page_that_is_not_utf8_is_named(tmp_path, capsys, monkeypatch):
-    run, bad = _run(tmp_path, "none")
+    run, _ = _run(tmp_path, "none")
     root = tmp_path / "project"
     (root / "docs").mkdir(parents=True)
     (root / "docs" / "good.md").write_text("# Good\n", encoding="utf-8")
@@ -85,7 +85,7 @@ def test_good_sources_pass_and_a_missing_run_folder_is_named(tmp_path):
 def test_the_command_exits_2_without_a_traceback(tmp_path):
     run, bad = _run(tmp_path, "truncated")
     proc = subprocess.run([sys.executable, "-m", "freereg_lib.commands.book", str(run)], capture_output=True,
-                          text=True, timeout=120, cwd=ROOT)
+                          text=True, timeout=120, cwd=ROOT, check=False)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
     assert proc.stderr.startswith(f"book: {bad}: not JSON") and proc.stderr.count("\n") == 1
     assert not (run / "book_src").exists() and not (run / "site").exists()  # nothing staged, nothing built

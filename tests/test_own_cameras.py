@@ -102,6 +102,7 @@ def test_square_pixels_keep_the_image_and_a_wild_aspect_is_refused(icl):
     tall = cameras.scale_intrinsics(K, 1.0, 0.5)  # fy halved: rows are upsampled
     img2, K2, d2, note = IC.square_pixels(image[::2], tall, depth[::2])
     assert img2.shape[:2] == (480, 640) and d2.shape == (480, 640) and K2[0, 0] == pytest.approx(K2[1, 1])
+    assert "240 to 640 x 480" in note
     with pytest.raises(InputError, match=r"^--K: fx = 525 and fy = 105 px differ 5 times; expected about equal"):
         IC.square_pixels(image, cameras.intrinsics(525, 105, 319.5, 239.5), depth)
 

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import json
 import sys
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Iterable
 
 NOTEBOOK_GLOB = "[0-9][0-9]_*.ipynb"  # the run's executed notebooks, as book.stage_notebooks reads them
 CELL_TYPES = ("markdown", "code", "raw")

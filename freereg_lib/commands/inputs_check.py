@@ -42,8 +42,6 @@ from freereg_lib.geometry.projection import project_to_depth
 from freereg_lib.pipeline.register import InputError
 
 
-
-
 def _error(msg: str) -> Exception:
     return InputError(msg)
 
