@@ -10,6 +10,7 @@ from pathlib import Path
 from freereg_lib.data.datasets.demo import FreeRegDemo
 from freereg_lib.data.datasets.kitti import KittiDC
 from freereg_lib.data.datasets.pairlists import PairSource
+from freereg_lib.data.datasets.rgbd_scenes_v2 import RGBDScenesV2
 from freereg_lib.data.datasets.scannet import ScanNet, scannet_official
 from freereg_lib.data.datasets.threedmatch import ThreeDMatch
 
@@ -21,13 +22,15 @@ def open_dataset(name: str, root: str | Path, **kw) -> PairSource:
     ``3dmatch``: :class:`~.threedmatch.ThreeDMatch`; ``kitti``: :class:`~.kitti.KittiDC`;
     ``scannet``: the official FreeReg data (:func:`~.scannet.scannet_official`) when
     ``root`` holds ``<scene>/query/`` folders, else ScanNet's own export
-    (:class:`~.scannet.ScanNet`); ``demo``: :class:`~.demo.FreeRegDemo` (one pair).
+    (:class:`~.scannet.ScanNet`); ``demo``: :class:`~.demo.FreeRegDemo` (one pair); ``rgbd-scenes-v2``:
+    :class:`~.rgbd_scenes_v2.RGBDScenesV2` (2D3D-MATR's preparation).
     """
     key = name.lower().replace("-", "_")
     if key == "scannet":
         official = any(p.is_dir() for p in Path(root).glob("*/query"))
         return (scannet_official if official else ScanNet)(root, **kw)
-    loaders = {"3dmatch": ThreeDMatch, "kitti": KittiDC, "kitti_dc": KittiDC, "demo": FreeRegDemo}
+    loaders = {"3dmatch": ThreeDMatch, "kitti": KittiDC, "kitti_dc": KittiDC, "demo": FreeRegDemo,
+               "rgbd_scenes_v2": RGBDScenesV2}
     if key not in loaders:
         raise ValueError(f"unknown dataset {name!r}; loaders exist for {sorted([*loaders, 'scannet'])}")
     return loaders[key](root, **kw)
