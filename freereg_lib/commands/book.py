@@ -30,6 +30,7 @@ from typing import Iterable
 
 from freereg_lib.commands.book_inputs import exit_on_bad_sources
 from freereg_lib.data import paper
+from freereg_lib.report import prose
 from freereg_lib.report.plots import compact_png
 
 ROOT = Path.cwd()  # the project folder the command runs in (make runs there); never where this file lies
@@ -212,6 +213,27 @@ class NotebookPage:
     headings: list[tuple[int, str]]
 
 
+def _fill_missing_glue(nb: dict, why: str) -> set[str]:
+    """Replace, in ``nb``'s Markdown, each glue reference whose name the run did not glue by a visible note
+    (a notebook that failed, or was not run, glued nothing after that point; myst-nb would stop the
+    build on it). Returns the names replaced."""
+    glued = prose.glued_names(nb)
+    missing: set[str] = set()
+
+    def note(m: re.Match) -> str:
+        name = prose.glue_references(m.group(0))[0]
+        if name in glued:
+            return m.group(0)
+        missing.add(name)
+        return f"*(not computed: this run {why})*"
+
+    for cell in nb["cells"]:
+        if cell["cell_type"] == "markdown":
+            text = "".join(cell["source"]) if isinstance(cell["source"], list) else cell["source"]
+            cell["source"] = prose.GLUE_ROLE.sub(note, text)
+    return missing
+
+
 def stage_notebooks(run_dir: Path, src: Path) -> list[NotebookPage]:
     """Copy the run's executed notebooks into ``src/notebooks``, each with a line naming its backend."""
 
@@ -227,6 +249,9 @@ def stage_notebooks(run_dir: Path, src: Path) -> list[NotebookPage]:
         failed = bool(nb.get("metadata", {}).get("papermill", {}).get("exception"))
         line = (f"**Backend: {backend}.** {BACKEND_NOTES.get(backend, 'See the README, Backends.')}"
                 + (" **This run of the notebook failed**: the page shows the error." if failed else ""))
+        missing = _fill_missing_glue(nb, "failed before it" if failed else "did not reach it")
+        if missing and not failed:
+            print(f"{path.name}: no value glued for {', '.join(sorted(missing))}; the page says so", file=sys.stderr)
         cell = {"cell_type": "markdown", "metadata": {"tags": ["freereg-backend"]}, "source": line, "id": "freereg-backend"}
         first = next((k for k, c in enumerate(nb["cells"]) if c["cell_type"] == "markdown"), -1)
         nb["cells"].insert(first + 1, cell)

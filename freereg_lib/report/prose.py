@@ -136,7 +136,7 @@ _YEAR = re.compile(r"(?:et al\.,?|ICLR|\(|,)\s*(?:19|20)\d\d\b")
 _NUMBER = re.compile(r"(?<![\w.\\])[+\-−]?\d+(?:_\d{3})*(?:\.\d+)?(?:\s?%)?(?![\w])")
 _CODE_SPAN = re.compile(r"(`+)(?!\{)(.+?)\1", re.S)
 _FENCE = re.compile(r"^(```|~~~|:::).*?^\1\s*$", re.S | re.M)
-_GLUE_ROLE = re.compile(r"\{glue(?::(?:any|text|md|math|figure))?\}`([^`]+)`")
+GLUE_ROLE = re.compile(r"\{glue(?::(?:any|text|md|math|figure))?\}`([^`]+)`")
 _GLUE_DIRECTIVE = re.compile(r"^(?:```|:::)\{glue(?::(?:any|figure|math|md))?\}\s+(\S+)", re.M)
 _MASKS = (
     re.compile(r"\]\([^)]*\)"),                         # link targets
@@ -180,7 +180,7 @@ def _value(token: str) -> float | None:
 
 def glue_references(markdown: str) -> list[str]:
     """The glue names a Markdown text references (roles and directives; a role's ``:format`` removed)."""
-    names = [m.group(1).rsplit(":", 1)[0] if ":" in m.group(1) else m.group(1) for m in _GLUE_ROLE.finditer(markdown)]
+    names = [m.group(1).rsplit(":", 1)[0] if ":" in m.group(1) else m.group(1) for m in GLUE_ROLE.finditer(markdown)]
     return [n.split("::")[-1].strip() for n in names] + [m.group(1) for m in _GLUE_DIRECTIVE.finditer(markdown)]
 
 
@@ -197,7 +197,7 @@ def stated_numbers(markdown: str, facts: Sequence[Fact] = ()) -> list[tuple[str,
     for m in _MATH.finditer(markdown):
         for n in _NOTATION.finditer(m.group()):
             text = _blank(text, (m.start() + n.start(), m.start() + n.end()))
-    for rx in (_FENCE, _GLUE_ROLE, _CODE_SPAN, *_MASKS, _NAMES, _YEAR):
+    for rx in (_FENCE, GLUE_ROLE, _CODE_SPAN, *_MASKS, _NAMES, _YEAR):
         for m in list(rx.finditer(text)):
             text = _blank(text, m.span())
     for fact in facts:  # a space in a pattern stands for any run of white space (the source wraps lines)
