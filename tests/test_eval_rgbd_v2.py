@@ -65,7 +65,8 @@ def test_reachable_is_the_share_of_image_keypoints_with_a_cloud_keypoint_within_
 
 def _rec(k, ir, rmse_k, rmse_p):
     row = lambda s, r: {"solver": s, "n_matches": 10, "n_evaluable": 10, "IR": ir, "reachable": 0.5,  # noqa: E731
-                        "RMSE": r, "RE": 1.0, "TE": 0.01, "error": "" if r is not None else "failed"}
+                        "RMSE": r, "RE": None if r is None else 30 * r, "TE": None if r is None else r,
+                        "error": "" if r is not None else "failed"}
     return {"k": k, "pair_seed": k, "pair": f"p{k}", "label": "micro", "seconds": 2.0, "load_average": 1.0,
             "rows": [row("kabsch", rmse_k), row("pnp", rmse_p)]}
 
@@ -84,6 +85,11 @@ def test_the_summary_counts_ir_fmr_rr_and_the_paired_difference():
     assert k["RR"]["mean"] == 25.0 and p["RR"]["mean"] == 75.0 and k["errors"] == 1
     t = res["tests"]["RR: pnp - kabsch"]
     assert t["diff"] == 50.0 and t["diff_ci"][0] <= 50.0 <= t["diff_ci"][1] and 0 < t["p"] <= 1
+    # the main RR (RE < 20 deg, TE < 0.5 m; here RE = 30 RMSE, TE = RMSE): Kabsch 0.01 and 0.3 (0.5: TE
+    # not below 0.5; None: failed), PnP 0.05, 0.02, 0.09 (0.5: TE not below 0.5)
+    assert k["RR_main"]["mean"] == 50.0 and p["RR_main"]["mean"] == 75.0
+    assert res["tests"]["RR_main: pnp - kabsch"]["diff"] == 25.0
+    assert k["RMSE_median"] == pytest.approx(0.4) and p["RMSE_median"] == pytest.approx(0.07)
     assert "FreeReg+pnp" in ev.report(res) and "+50.0 points" in ev.report(res)
 
 
@@ -96,6 +102,7 @@ def test_the_verdict_reads_the_summary(tmp_path, monkeypatch):
     assert "RR 34.1" in text and "57.3" in text, text  # the paper's Kabsch and PnP means
     assert "PnP above Kabsch: holds here" in text, text
     assert "4 synthetic test pairs" in text, text
+    assert "the same poses at the main RR (RE < 20 deg, TE < 0.5 m): Kabsch 50.0 %" in text, text
 
 
 @pytest.mark.parametrize("argv, message", [
