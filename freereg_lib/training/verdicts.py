@@ -17,6 +17,7 @@ LAYERS_JSON = "test_split_layers.json"
 TUNED_JSON = "fusion/test_split_fpfh0.15_w0.5.json"
 DDIM_JSON = "ddim_iterations_test.json"
 COMBINATIONS_JSON = "dev_layer_combinations.json"
+MONO_JSON = "mono_modality_test.json"
 
 
 def _load(name: str) -> dict | None:
@@ -208,4 +209,45 @@ def table8() -> list[str]:
                      f"(0, 4, 6) {c['mean']:.1f} [{c['ci'][0]:.1f}, {c['ci'][1]:.1f}] ranks {v['chosen_rank_micro']} of "
                      f"{v['n_rows']}{test}; the paper's best {tuple(v['paper_best_layers'])}, its (0, 4, 6) ranks "
                      f"{v['chosen_rank_paper']}; rank correlation with the paper {v['rank_correlation']:+.2f}")
+    return lines
+
+
+def _verdict(diff: float, p: float) -> str:
+    """'holds' only when the difference is positive and significant (paired test)."""
+    if diff <= 0:
+        return "does not hold here" if diff < 0 else "cannot be told here (a tie)"
+    return "holds here" if p < 0.05 else "not shown here (above in the mean, not significantly)"
+
+
+def table10() -> list[str]:
+    """Table 10's reading: fused FreeReg between two images (RGB) and between two depth maps (DPT)
+    against the image-to-cloud FreeReg on the same pairs, beside the paper's rows (its Table 10 and
+    Table 1's FreeReg, Kabsch, on 3DMatch)."""
+    from freereg_lib.data import paper
+
+    r = _load(MONO_JSON)
+    if r is None:
+        return [f"(no committed {MONO_JSON}: run python -m freereg_lib.training.evaluate_mono)"]
+    mono = paper.table("table_mono_modality").set_index(["method", "input"])
+    t1 = paper.table("table1_main")
+    cross = t1[(t1.dataset == "3DMatch") & (t1.method == "FreeReg") & (t1.solver == "Kabsch")].iloc[0]
+    theirs = {m: {k: float(mono.loc[("FreeReg", m), f"3DMatch_{k}"]) for k in ("FMR", "IR", "IN", "RR")}
+              for m in ("RGB", "DPT")}
+    theirs["cross"] = {k: float(cross[k]) for k in ("FMR", "IR", "IN", "RR")}
+    res, tests = r["results"], r["tests"]
+    lines = [_header(r, MONO_JSON) + " fused FreeReg on both views of each pair, Kabsch-RANSAC; made by: "
+             + "; ".join(r.get("commands", []))]
+    names = {"RGB": "RGB to RGB", "DPT": "depth to depth", "cross": "image to cloud"}
+    for m, name in names.items():
+        x, t = res[f"{m} kabsch"], theirs[m]
+        lines.append(f"  {name:14s}: FMR {x['FMR']['mean']:5.1f} %, IR {_ci(x['IR'])}, IN {x['IN']:5.1f}, "
+                     f"RR {_ci(x['RR'])}; the paper (3DMatch): FMR {t['FMR']:.1f}, IR {t['IR']:.1f}, "
+                     f"IN {t['IN']:.1f}, RR {t['RR']:.1f}")
+    for a, b in (("RGB", "cross"), ("DPT", "cross"), ("DPT", "RGB")):
+        rr, ir = tests[f"RR kabsch: {a} - {b}"], tests[f"IR: {a} - {b}"]
+        lines.append(f"  {names[a]} above {names[b]} (the paper: RR {theirs[a]['RR'] - theirs[b]['RR']:+.1f}, "
+                     f"IR {theirs[a]['IR'] - theirs[b]['IR']:+.1f} points): RR {rr['diff']:+.1f} points "
+                     f"[{rr['diff_ci'][0]:+.1f}, {rr['diff_ci'][1]:+.1f}] ({_sig(rr['p'])}) -> "
+                     f"{_verdict(rr['diff'], rr['p'])}; IR {ir['diff']:+.1f} points ({_sig(ir['p'])}) -> "
+                     f"{_verdict(ir['diff'], ir['p'])}")
     return lines
