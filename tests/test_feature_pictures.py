@@ -187,9 +187,9 @@ def test_the_figures_have_their_panels():
                                    {"diffusion": rng.random((50, 3)), "fused": np.full((50, 3), np.nan)})
     assert len(fig.axes) == 4
     fig = FP.patches_figure(img, uv, [("by the matches", dep, uv), ("true", dep, uv)], ok, size=4)
-    assert len(fig.axes) == 4
+    assert len(fig.axes) == 3
     case = dict(image=img, depth_picture=dep, uv_image=uv, uv_depth=uv, correct=ok, title="pair")
-    assert len(FP.outcomes_figure([case, case]).axes) == 2
+    assert len(FP.outcomes_figure([case, case, case]).axes) == 4  # two to a row, the spare one blank
     import matplotlib.pyplot as plt
 
     plt.close("all")

@@ -35,6 +35,7 @@ EXPECTED = [
     "04_benchmark.ipynb",
     "05_your_data.ipynb",
     "06_appendix.ipynb",
+    "07_paper_figures.ipynb",
 ]
 ALL = sorted(set(EXPECTED) | {p.name for p in NOTEBOOKS.glob("*.ipynb")})
 # Every notebook's parameters cell declares these (the conventions of notebooks/).
@@ -81,6 +82,8 @@ RUNS = {
     # The appendix with the stub (no DDIM there: its rows do not move with the iterations).
     "06_appendix": dict(params={"backend": "stub", "seed": 1, "n_pairs": 1},
                         knobs={"ddim_steps_list": [5, 20], "ransac_iters": 2000}),
+    # The paper's pictures with the stub: a synthetic pair for sections 1-3, one ICL pair (FreeReg-G).
+    "07_paper_figures": dict(params={"backend": "stub", "n_pairs": 1}, knobs={"ransac_iters": 2000}),
 }
 
 

@@ -202,6 +202,12 @@ def oblique_view(points: np.ndarray, elevation_deg: float, azimuth_deg: float = 
 # --------------------------------------------------------------------------------------
 # Patches.
 
+def _unit_rgb(a: np.ndarray) -> np.ndarray:
+    """A picture as float64 in [0, 1] (a ``uint8`` one read as 0..255); always a new array."""
+    a = np.asarray(a)
+    return a.astype(np.float64) / (255.0 if a.dtype == np.uint8 else 1.0)
+
+
 def spaced(uv: np.ndarray, min_dist: float) -> np.ndarray:
     """Indices ``(K,) int64`` of points of ``uv (N, 2)`` kept in order when at least ``min_dist``
     from every point kept before (Chebyshev distance, so square patches of that side do not
@@ -235,11 +241,7 @@ def warp_patches(image: np.ndarray, uv_src: np.ndarray, canvas: np.ndarray, uv_d
     earlier; parts falling off either picture are cut; a NaN destination pastes nothing. A
     ``uint8`` picture is read as 0..255.
     """
-    def unit(a):
-        a = np.asarray(a)
-        return a.astype(np.float64) / (255.0 if a.dtype == np.uint8 else 1.0)
-
-    img, out = unit(image), unit(canvas).copy()
+    img, out = _unit_rgb(image), _unit_rgb(canvas)
     src = np.asarray(uv_src, dtype=np.float64).reshape(-1, 2)
     dst = np.asarray(uv_dst, dtype=np.float64).reshape(-1, 2)
     H, W = img.shape[:2]
@@ -262,11 +264,6 @@ def warp_patches(image: np.ndarray, uv_src: np.ndarray, canvas: np.ndarray, uv_d
 
 # --------------------------------------------------------------------------------------
 # Figures.
-
-def _unit_rgb(a: np.ndarray) -> np.ndarray:
-    a = np.asarray(a)
-    return a.astype(np.float64) / (255.0 if a.dtype == np.uint8 else 1.0)
-
 
 def _canvas(image: np.ndarray, right: np.ndarray) -> np.ndarray:
     """``image`` (left) and ``right`` side by side, ``(max(H1, H2), W1 + W2, 3)`` float RGB."""
@@ -376,14 +373,17 @@ def patches_figure(image: np.ndarray, uv_src: np.ndarray, panels: list, correct:
     from matplotlib.patches import Rectangle
 
     n = 1 + len(panels)
-    cols = 2 if n > 1 else 1
+    cols = min(n, 3)  # one row for the image and two warps: the patches stay comparable side by side
     rows = int(np.ceil(n / cols))
     h, w = np.asarray(image).shape[:2]
-    fig, axes = plt.subplots(rows, cols, figsize=(FIG_WIDTH_IN, rows * (FIG_WIDTH_IN / cols * h / w + 0.35) + 0.5),
+    fig, axes = plt.subplots(rows, cols, figsize=(FIG_WIDTH_IN, rows * (FIG_WIDTH_IN / cols * h / w + 0.35) + 0.6),
                              squeeze=False)
     items = [("image patches", image, uv_src)] + list(panels)
     for ax, (ptitle, pic, uv) in zip(axes.ravel(), items):
         _panel(ax, pic, ptitle)
+        ph, pw = np.asarray(pic).shape[:2]
+        ax.set_xlim(-0.5, pw - 0.5)  # an outline falling off the picture must not widen the panel
+        ax.set_ylim(ph - 0.5, -0.5)
         for k, (u, v) in enumerate(np.asarray(uv, dtype=np.float64).reshape(-1, 2)):
             if not np.isfinite([u, v]).all():
                 continue
@@ -398,9 +398,9 @@ def patches_figure(image: np.ndarray, uv_src: np.ndarray, panels: list, correct:
     return fig
 
 
-def outcomes_figure(cases: list, title: str = "", max_lines: int = 150, seed: int = 0):
-    """Several pairs' matches, one row each: image (left) and cloud depth view (right), match lines
-    green correct and red wrong.
+def outcomes_figure(cases: list, title: str = "", max_lines: int = 150, seed: int = 0, cols: int = 2):
+    """Several pairs' matches, one panel each (``cols`` to a row): image (left) and cloud depth view
+    (right), match lines green correct and red wrong.
 
     Each case is a dict with ``image (H, W, 3)``, ``depth_picture (Hd, Wd, 3)``, ``uv_image
     (K, 2)``, ``uv_depth (K, 2)``, ``correct (K,) bool`` and ``title`` (the pair, its RE / TE
@@ -408,14 +408,16 @@ def outcomes_figure(cases: list, title: str = "", max_lines: int = 150, seed: in
     """
     plt = _plt()
     canvases = [_canvas(c["image"], c["depth_picture"]) for c in cases]
-    rh = max((FIG_WIDTH_IN * cv.shape[0] / cv.shape[1] for cv in canvases), default=1.0) + 0.45
-    fig, axes = plt.subplots(max(len(cases), 1), 1, figsize=(FIG_WIDTH_IN, max(len(cases), 1) * rh + 0.5),
-                             squeeze=False)
-    for ax, case, cv in zip(axes[:, 0], cases, canvases):
+    cols = max(1, min(cols, len(cases)))
+    rows = max(1, int(np.ceil(len(cases) / cols)))
+    pw = FIG_WIDTH_IN / cols
+    rh = max((pw * cv.shape[0] / cv.shape[1] for cv in canvases), default=1.0) + 0.55
+    fig, axes = plt.subplots(rows, cols, figsize=(FIG_WIDTH_IN, rows * rh + 0.6), squeeze=False)
+    for ax, case, cv in zip(axes.ravel(), cases, canvases):
         _panel(ax, cv, case.get("title", ""))
         _lines(ax, case["uv_image"], case["uv_depth"], case.get("correct"), np.asarray(case["image"]).shape[1],
                max_lines, seed)
-    for ax in axes[len(cases):, 0]:
+    for ax in axes.ravel()[len(cases):]:
         ax.axis("off")
     if title:
         fig.suptitle(title, fontsize=10)
