@@ -269,7 +269,8 @@ def summarize(recs: list[dict], split_name: str) -> dict:
                     "monocular depth of both), DPT = both depth maps (ControlNet-guided DDIM features, sensor depth of "
                     "both), cross = the image against the cloud (Table 1's setting); Kabsch with scale, PnP for cross "
                     "only. IR / FMR / RR in %, IN a count, RE degrees / TE metres (medians of solved poses); intervals: "
-                    "95 % percentile bootstrap over pairs; p: two-sided paired sign-flip permutation test; seconds: "
+                    "95 % percentile bootstrap over pairs; p: two-sided paired sign-flip permutation test; errors: rows whose "
+                    "features or pose failed (a solver's refusal included), scored not registered; seconds: "
                     "medians of the CPU's wall clock, with its 1-minute load average range."}
 
 
