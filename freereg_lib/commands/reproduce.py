@@ -1,8 +1,9 @@
 """``make reproduce``: run the companion's main job on the embedded default and print the table.
 
-With the notebooks present it executes all five with papermill on their defaults
-(synthetic scenes; the micro models in 01-04, the stub in 00 and 05) into a run folder, then prints where the executed
-notebooks, figures and tables are, and the benchmark's table beside the paper's. Then it renders the
+With the notebooks present it executes them all with papermill on their defaults (synthetic scenes;
+the micro models in 01-04, 06 and 07, the stub in 00 and 05), one a core side by side, into a run
+folder, then prints where the executed notebooks, figures and tables are, and the benchmark's table
+beside the paper's. Then it renders the
 executed notebooks as a book (``<out>/site/index.html``, :mod:`freereg_lib.commands.book`) and rewrites
 the README's gallery (``figures/gallery/``, :mod:`freereg_lib.commands.gallery`) from the figures of the run;
 ``--no-book`` skips both.
@@ -11,7 +12,9 @@ the README's gallery (``figures/gallery/``, :mod:`freereg_lib.commands.gallery`)
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+import time
 from pathlib import Path
 
 ROOT = Path.cwd()  # the project folder the command runs in (make runs there); never where this file lies
@@ -36,23 +39,44 @@ def quick(n_pairs: int, seed: int) -> None:
     print(table[cols].to_markdown(index=False, floatfmt=".1f"))
 
 
-def notebooks(out: Path, seed: int) -> int:
-    """Execute every notebook with papermill into ``out``; returns the number that failed."""
+def _execute(nb: Path, target: Path, seed: int, out_dir: Path) -> tuple[float, str | None]:
+    """Run one notebook with papermill; ``(seconds, None)`` or ``(seconds, the error's last line)``."""
     import papermill as pm
+
+    t0 = time.perf_counter()
+    try:
+        pm.execute_notebook(str(nb), str(target), parameters={"seed": seed, "out_dir": str(out_dir)},
+                            kernel_name="python3", cwd=str(nb.parent), progress_bar=False)
+    except Exception as exc:  # keep going: the executed copy holds the error
+        text = str(exc).strip()
+        return time.perf_counter() - t0, text.splitlines()[-1] if text else repr(exc)
+    return time.perf_counter() - t0, None
+
+
+def notebooks(out: Path, seed: int, jobs: int | None = None) -> int:
+    """Execute every notebook with papermill into ``out``, ``jobs`` at a time (default: one a core, at
+    most one a notebook); returns the number that failed.
+
+    The notebooks are independent (each writes its own ``out/<stem>`` and figures with its own prefix)
+    and each kernel's models run on one thread (``cpu_threads``), so running them side by side changes
+    no number: it uses the cores that one kernel at a time leaves idle, and beside another busy process
+    each kernel still runs a whole core's work instead of spinning threads."""
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
     from tqdm.auto import tqdm
 
     out.mkdir(parents=True, exist_ok=True)
-    failed = []
     books = sorted(NOTEBOOKS.glob("[0-9][0-9]_*.ipynb"))
-    for nb in tqdm(books, desc="notebooks"):
-        target = out / nb.name
-        try:
-            pm.execute_notebook(
-                str(nb), str(target), parameters={"seed": seed, "out_dir": str(out / nb.stem)},
-                kernel_name="python3", cwd=str(NOTEBOOKS), progress_bar=False,
-            )
-        except Exception as exc:  # keep going: the executed copy holds the error
-            failed.append((nb.name, str(exc).strip().splitlines()[-1] if str(exc).strip() else repr(exc)))
+    jobs = max(1, min(jobs or os.cpu_count() or 1, len(books)))
+    failed, seconds = [], {}
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        futures = {pool.submit(_execute, nb, out / nb.name, seed, out / nb.stem): nb for nb in books}
+        for fut in tqdm(as_completed(futures), total=len(futures), desc=f"notebooks ({jobs} at a time)"):
+            nb = futures[fut]
+            seconds[nb.name], error = fut.result()
+            if error is not None:
+                failed.append((nb.name, error))
+    print("\nSeconds per notebook: " + ", ".join(f"{name[:2]} {seconds[name]:.0f}" for name in sorted(seconds)))
     print(f"\nExecuted notebooks: {out}")
     print(f"Figures:            {ROOT / 'figures'}")
     for stem in sorted(p.stem for p in books):
@@ -74,12 +98,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="skip the notebooks; register synthetic pairs directly")
     ap.add_argument("--pairs", type=int, default=6, help="pairs for --quick")
     ap.add_argument("--no-book", action="store_true", help="do not write the site and the README's gallery")
+    ap.add_argument("--jobs", type=int, default=None,
+                    help="notebooks run side by side (default: one a core); each kernel's models use one thread")
     args = ap.parse_args(argv)
+    if args.jobs is not None and args.jobs < 1:
+        ap.error(f"--jobs must be at least 1, got {args.jobs}")
     if args.quick or not any(NOTEBOOKS.glob("[0-9][0-9]_*.ipynb")):
         quick(args.pairs, args.seed)
         return 0
     out = Path(args.out).resolve()
-    failed = notebooks(out, args.seed)
+    failed = notebooks(out, args.seed, args.jobs)
     if not args.no_book:
         from freereg_lib.commands.book import BookError
 
