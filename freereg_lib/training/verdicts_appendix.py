@@ -6,6 +6,12 @@ protocol, read from the committed run of :mod:`.evaluate_rgbd_v2` on the synthet
 
     from freereg_lib.training import verdicts_appendix
     print("\\n".join(verdicts_appendix.table5()))
+
+:func:`table11`: Table 11 (fine-tuning), FreeReg against FreeReg-Ft, read from the committed run of
+:mod:`.evaluate_finetune` (the committed micro ControlNet against it fine-tuned on sensor-like hints
+by :mod:`.finetune_controlnet`, on the synthetic test split) beside the paper's rows:
+
+    print("\\n".join(verdicts_appendix.table11()))
 """
 from __future__ import annotations
 
@@ -16,6 +22,7 @@ from freereg_lib.data import paper
 from freereg_lib.training.verdicts import _ahead, _ci, _sig
 
 RGBD_V2_JSON = "rgbd_scenes_v2_test.json"  # under the micro weights' folder (an absolute path is kept)
+FINETUNE_JSON = "finetune_test.json"
 
 
 def _load(name) -> dict | None:
@@ -67,4 +74,46 @@ def table5() -> list[str]:
                      f"{_ci(k['RR_main'])}, PnP {_ci(n['RR_main'])}; PnP - Kabsch {main['diff']:+.1f} points "
                      f"[{ci[0]:+.1f}, {ci[1]:+.1f}], {_sig(main['p'])}; median RMSE Kabsch {k['RMSE_median']:.2f} m, "
                      f"PnP {n['RMSE_median']:.2f} m")
+    return lines
+
+
+def table11() -> list[str]:
+    """Table 11's reading: the paper's FreeReg and FreeReg-Ft rows (Kabsch) beside the micro models'
+    committed and fine-tuned numbers with 95 % bootstrap intervals, the paired differences, and a
+    last line with the verdict on the claim that fine-tuning on sensor-like depth raises IR and RR."""
+    r = _load(FINETUNE_JSON)
+    if r is None:
+        return [f"(no committed {FINETUNE_JSON}: run python -m freereg_lib.training.evaluate_finetune)"]
+    t = paper.table("table_finetune").set_index(["dataset", "method"])
+    res, tests, ft = r["results"], r["tests"], r.get("finetune") or {}
+    recipe = (f"ControlNet steps {ft['from_step']} -> {ft['from_step'] + ft['steps']} at lr {ft['lr']:g} on "
+              f"sensor-like hints of {ft['scenes']} training rooms") if "from_step" in ft else "fine-tuned ControlNet"
+    lines = [f"Committed test split ({FINETUNE_JSON}): {r['n_pairs']} synthetic test pairs never used for a choice; "
+             f"{recipe}; 95 % bootstrap intervals:",
+             "  the paper (Table 11, fine-tuning; FreeReg with Kabsch):"]
+    for ds in dict.fromkeys(t.index.get_level_values(0)):
+        a, b = t.loc[(ds, "FreeReg")], t.loc[(ds, "FreeReg-Ft")]
+        lines.append(f"    {ds:9s} FMR {a['FMR']:.1f} -> {b['FMR']:.1f}, IR {a['IR']:.1f} -> {b['IR']:.1f}, "
+                     f"IN {a['IN']:.1f} -> {b['IN']:.1f}, RR {a['RR']:.1f} -> {b['RR']:.1f}")
+    for solver in ("kabsch", "pnp"):
+        c, f = res[f"committed {solver}"], res[f"finetuned {solver}"]
+        lines.append(f"  micro, {solver}: FMR {_ci(c['FMR'])} -> {_ci(f['FMR'])}; IR {_ci(c['IR'])} -> "
+                     f"{_ci(f['IR'])}; IN {c['IN']:.1f} -> {f['IN']:.1f}; RR {_ci(c['RR'])} -> {_ci(f['RR'])}")
+        for metric in ("IR", "RR"):
+            d = tests[f"{metric} {solver}: finetuned - committed"]
+            lines.append(f"    {metric} fine-tuned - committed: {d['diff']:+.1f} points "
+                         f"[{d['diff_ci'][0]:+.1f}, {d['diff_ci'][1]:+.1f}], {_sig(d['p'])}")
+    ir, rr = tests["IR kabsch: finetuned - committed"], tests["RR kabsch: finetuned - committed"]
+    up = ir["diff"] > 0 and rr["diff"] > 0
+    if up and ir["p"] < 0.05 and rr["p"] < 0.05:
+        verdict = "holds here (both significantly up)"
+    elif up:
+        verdict = "holds in the mean only, not significantly"
+    elif ir["diff"] < 0 and rr["diff"] < 0 and ir["p"] < 0.05 and rr["p"] < 0.05:
+        verdict = "does not hold here (both significantly down)"
+    else:
+        verdict = "does not hold here (not both up)"
+    dm = t.loc[("3DMatch", "FreeReg-Ft")] - t.loc[("3DMatch", "FreeReg")]
+    lines.append(f"  Verdict, fine-tuning raises IR and RR (Kabsch): {verdict}: IR {ir['diff']:+.1f}, RR "
+                 f"{rr['diff']:+.1f} points; the paper on 3DMatch: IR {dm['IR']:+.1f}, RR {dm['RR']:+.1f}")
     return lines
