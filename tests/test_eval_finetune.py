@@ -104,6 +104,7 @@ def test_the_verdict_reads_the_committed_json(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("argv, message", [
     (["--pairs", "0", "--rows", "r.jsonl"], "--pairs 0: expected >= 1"),
+    (["--shard", "2/2", "--rows", "r.jsonl"], "--shard 2/2: expected 0 <= i < n"),
     (["--model", "finetuned", "--rows", "r.jsonl"], "--weights is needed"),
     (["--summarize", "--weights", ".", "--rows", "r.jsonl"], "no controlnet/ folder"),
 ])

@@ -3,9 +3,9 @@
     python -m freereg_lib.training.evaluate_finetune --model committed --pairs 100 \
         --rows runs/micro/finetune/rows_committed.jsonl
     python -m freereg_lib.training.evaluate_finetune --model finetuned --weights runs/micro/finetune/weights \
-        --pairs 100 --rows runs/micro/finetune/rows_finetuned.jsonl
+        --pairs 100 --shard 0/2 --rows runs/micro/finetune/rows_finetuned_0.jsonl   (and 1/2, side by side)
     python -m freereg_lib.training.evaluate_finetune --summarize --weights runs/micro/finetune/weights \
-        --rows runs/micro/finetune/rows_committed.jsonl runs/micro/finetune/rows_finetuned.jsonl \
+        --rows runs/micro/finetune/rows_committed.jsonl runs/micro/finetune/rows_finetuned_[01].jsonl \
         --out freereg_lib/models/micro/weights/finetune_test.json
 
 Fused FreeReg (Kabsch- and PnP-RANSAC) on the test split with the committed micro weights and with
@@ -32,7 +32,7 @@ from tqdm import tqdm
 
 from freereg_lib.config import FreeRegConfig
 from freereg_lib.training.evaluate import bootstrap_ci, paired_permutation_p
-from freereg_lib.training.evaluate_split import RowsError, _git_head, _plain, _stat, publish
+from freereg_lib.training.evaluate_split import RowsError, _git_head, _plain, _stat, parse_shard, publish
 from freereg_lib.training.splits import SPLITS
 
 MODELS = ("committed", "finetuned")
@@ -77,8 +77,9 @@ def pair_record(pair, backend, cfg: FreeRegConfig) -> dict:
 
 
 def run(split_name: str, n_pairs: int, rows_path: Path, model: str, weights: str | None = None,
-        progress: bool = True) -> None:
-    """Append ``model``'s rows of the split's pairs ``k < n_pairs`` not yet in ``rows_path``."""
+        shard: tuple[int, int] = (0, 1), progress: bool = True) -> None:
+    """Append ``model``'s rows of the split's pairs ``k < n_pairs`` (those with ``k % n == i`` for
+    ``shard = (i, n)``) not yet in ``rows_path``."""
     from freereg_lib.data import synthetic
     from freereg_lib.models import get_backend
 
@@ -87,7 +88,8 @@ def run(split_name: str, n_pairs: int, rows_path: Path, model: str, weights: str
     backend = get_backend("micro", cfg, device="cpu", weights_dir=weights if model == "finetuned" else None)
     done = {r["k"] for r in _read(rows_path) if r.get("model") == model} if rows_path.exists() else set()
     rows_path.parent.mkdir(parents=True, exist_ok=True)
-    for k in tqdm([k for k in range(n_pairs) if k not in done], desc=f"{model}, {split.name} split",
+    todo = [k for k in range(n_pairs) if k not in done and k % shard[1] == shard[0]]
+    for k in tqdm(todo, desc=f"{model}, {split.name} split",
                   disable=not progress):
         seed = split.pair_seeds(k + 1)[k]
         pair = synthetic.make_pair("indoor", seed=seed)
@@ -198,11 +200,16 @@ def main(argv=None) -> int:
     p.add_argument("--model", default="committed", choices=MODELS, help="which weights this process runs")
     p.add_argument("--weights", default=None, help="the fine-tuned weights folder (finetune_controlnet --export)")
     p.add_argument("--rows", nargs="+", required=True, help="per-pair rows (JSON lines), appended to or summarized")
+    p.add_argument("--shard", default="0/1", help="i/n: this process runs pairs k with k %% n == i")
     p.add_argument("--summarize", action="store_true")
     p.add_argument("--out", default=None)
     args = p.parse_args(argv)
     if args.pairs < 1:
         p.error(f"--pairs {args.pairs}: expected >= 1")
+    try:
+        shard = parse_shard(args.shard)
+    except ValueError as exc:
+        p.error(str(exc))
     if (args.model == "finetuned" or args.summarize) and not args.weights:
         p.error("--weights is needed for the fine-tuned model and for --summarize")
     if args.weights and not Path(args.weights, "controlnet").is_dir():
@@ -210,7 +217,7 @@ def main(argv=None) -> int:
     if not args.summarize:
         if len(args.rows) != 1:
             p.error("--rows: one file when running a model (several only with --summarize)")
-        run(args.split, args.pairs, Path(args.rows[0]), args.model, args.weights)
+        run(args.split, args.pairs, Path(args.rows[0]), args.model, args.weights, shard)
         return 0
     try:
         pairs = paired_records(args.rows)
@@ -225,7 +232,7 @@ def main(argv=None) -> int:
         f"python -m freereg_lib.training.evaluate_finetune --split {args.split} --model committed --pairs "
         f"{len(pairs)} --rows {args.rows[0]}",
         f"python -m freereg_lib.training.evaluate_finetune --split {args.split} --model finetuned --weights "
-        f"{args.weights} --pairs {len(pairs)} --rows {args.rows[-1]}",
+        f"{args.weights} --pairs {len(pairs)} [--shard i/n] --rows {' '.join(args.rows[1:]) or args.rows[0]}",
         f"python -m freereg_lib.training.evaluate_finetune --split {args.split} --summarize --weights {args.weights} "
         f"--rows {' '.join(args.rows)}" + (f" --out {args.out}" if args.out else "")]
     res["git_head"] = _git_head()
