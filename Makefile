@@ -22,10 +22,12 @@ book: .venv/.installed
 # Two pytest workers (pytest-xdist), a test file or notebook each at a time: many tests wait on
 # kernels and subprocesses, so two keep both cores busy. nbmake's 300 s cell limit is for one
 # notebook alone; with another test beside it notebook 04's benchmark cell needs more.
+# The notebooks and test_notebooks.py (the longest files) are named first so that they start first and
+# the short tests fill the other worker, instead of one long notebook running alone at the end.
 # setup_env.sh --browser installs Chromium for tests/test_site.py where it runs as root.
 test: .venv/.installed
 	environment/setup_env.sh --browser
-	$(PY) -m pytest -q -n 2 --dist loadfile --nbmake --nbmake-timeout=900 --durations=15 tests notebooks
+	$(PY) -m pytest -q -n 2 --dist loadfile --nbmake --nbmake-timeout=900 --durations=15 notebooks tests/test_notebooks.py tests
 
 clean-venv:
 	rm -rf .venv
