@@ -61,7 +61,7 @@ def test_a_few_fine_tuning_steps_lower_the_loss_and_change_only_the_controlnet(t
 
 def _rec(k: int, model: str, registered: bool, ir: float) -> dict:
     rows = [{"solver": s, "n_matches": 100, "IR": ir, "IN": 100 * ir, "RE": 1.0, "TE": 0.1,
-             "registered": registered, "error": None} for s in E.SOLVERS]
+             "registered": registered, "error": "" if registered else "no pose"} for s in E.SOLVERS]
     return {"k": k, "model": model, "pair_seed": k, "pair": f"p{k}", "label": "micro", "weights": "w",
             "depth_weights": "d", "load_average": 1.0, "seconds_geometric": 1.0, "seconds_diffusion": 2.0,
             "rows": rows}
@@ -84,6 +84,7 @@ def test_the_summary_counts_equal_its_rows_and_pairs_the_models(tmp_path, capsys
         assert r["n"] == 3 == len(r["registered_per_pair"]) == len(r["IR_per_pair"])
     assert res["results"]["committed kabsch"]["RR"]["mean"] == pytest.approx(200 / 3)
     assert res["results"]["finetuned pnp"]["RR"]["mean"] == 100.0
+    assert res["results"]["committed kabsch"]["failed"] == 1 and res["results"]["finetuned kabsch"]["failed"] == 0
     t = res["tests"]["RR kabsch: finetuned - committed"]
     assert t["diff"] == pytest.approx(100 / 3) and t["diff_ci"][0] <= t["diff"] <= t["diff_ci"][1]
     assert res["tests"]["IR pnp: finetuned - committed"]["diff"] == pytest.approx(10.0)

@@ -150,7 +150,7 @@ def summarize(pairs: list[dict[str, dict]], split_name: str) -> dict:
             per[f"{m} {solver}"] = {"n": len(rows), "FMR": _stat(np.asarray(ir) > cfg.fmr_ratio), "IR": _stat(ir),
                                     "IN": float(np.mean([r["IN"] or 0 for r in rows])), "RR": _stat(reg),
                                     "IR_per_pair": ir, "registered_per_pair": reg,
-                                    "failed": sum(r["error"] is not None for r in rows)}
+                                    "failed": sum(bool(r["error"]) for r in rows)}
         per[f"{m} seconds_diffusion"] = float(np.median([p[m]["seconds_diffusion"] for p in pairs]))
     for solver in SOLVERS:
         a, b = per[f"finetuned {solver}"], per[f"committed {solver}"]
