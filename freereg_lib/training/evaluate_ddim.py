@@ -19,7 +19,6 @@ import argparse
 import dataclasses
 import json
 import os
-import platform
 import time
 from pathlib import Path
 
@@ -31,7 +30,7 @@ from freereg_lib.config import FreeRegConfig
 from freereg_lib.data import synthetic
 from freereg_lib.models import get_backend
 from freereg_lib.training.evaluate import bootstrap_ci, paired_permutation_p
-from freereg_lib.training.evaluate_split import _done, _git_head, _plain, _stat, publish, rows_to_summarize
+from freereg_lib.training.evaluate_split import _done, _plain, _stat, publish, rows_to_summarize, stamped
 from freereg_lib.training.splits import SPLITS
 
 STEPS = (5, 10, 15, 20)
@@ -148,9 +147,7 @@ def main(argv=None) -> int:
                        f"--steps {' '.join(str(s) for s in res['steps'])} --rows {args.rows}",
                        f"python -m freereg_lib.training.evaluate_ddim --split {args.split} --summarize --rows "
                        f"{args.rows}" + (f" --out {args.out}" if args.out else "")]
-    res["git_head"] = _git_head()
-    res["machine"] = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {platform.python_version()}"
-    publish(res, report(res), args.out)
+    publish(stamped(res), report(res), args.out)
     return 0
 
 

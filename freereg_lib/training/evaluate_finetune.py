@@ -23,7 +23,6 @@ import dataclasses
 import hashlib
 import json
 import os
-import platform
 import time
 from pathlib import Path
 
@@ -32,7 +31,7 @@ from tqdm import tqdm
 
 from freereg_lib.config import FreeRegConfig
 from freereg_lib.training.evaluate import bootstrap_ci, paired_permutation_p
-from freereg_lib.training.evaluate_split import RowsError, _git_head, _plain, _stat, parse_shard, publish
+from freereg_lib.training.evaluate_split import RowsError, _plain, _stat, parse_shard, publish, stamped
 from freereg_lib.training.splits import SPLITS
 
 MODELS = ("committed", "finetuned")
@@ -235,9 +234,7 @@ def main(argv=None) -> int:
         f"{args.weights} --pairs {len(pairs)} [--shard i/n] --rows {' '.join(args.rows[1:]) or args.rows[0]}",
         f"python -m freereg_lib.training.evaluate_finetune --split {args.split} --summarize --weights {args.weights} "
         f"--rows {' '.join(args.rows)}" + (f" --out {args.out}" if args.out else "")]
-    res["git_head"] = _git_head()
-    res["machine"] = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {platform.python_version()}"
-    publish(res, report(res), args.out)
+    publish(stamped(res), report(res), args.out)
     return 0
 
 

@@ -42,7 +42,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,7 +49,7 @@ from pathlib import Path
 import numpy as np
 
 from freereg_lib.training.evaluate import bootstrap_ci, paired_permutation_p
-from freereg_lib.training.evaluate_split import _done, _git_head, _plain, _stat, publish, rows_to_summarize
+from freereg_lib.training.evaluate_split import _done, _plain, _stat, publish, rows_to_summarize, stamped
 from freereg_lib.training.splits import SPLITS
 
 MODALITIES = ("RGB", "DPT", "cross")
@@ -306,9 +305,7 @@ def main(argv=None) -> int:
                        f"--rows {args.rows}",
                        f"python -m freereg_lib.training.evaluate_mono --split {args.split} --summarize --rows "
                        f"{args.rows}" + (f" --out {args.out}" if args.out else "")]
-    res["git_head"] = _git_head()
-    res["machine"] = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {platform.python_version()}"
-    publish(res, report(res), args.out)
+    publish(stamped(res), report(res), args.out)
     return 0
 
 

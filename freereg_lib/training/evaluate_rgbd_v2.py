@@ -28,7 +28,6 @@ import argparse
 import json
 import math
 import os
-import platform
 import time
 from pathlib import Path
 
@@ -42,7 +41,7 @@ from freereg_lib.data import synthetic
 from freereg_lib.training.coarse_to_fine import coarse_to_fine
 from freereg_lib.geometry import cameras, keypoints, metrics
 from freereg_lib.training.evaluate import bootstrap_ci, paired_permutation_p
-from freereg_lib.training.evaluate_split import _done, _git_head, _plain, _stat, publish, rows_to_summarize
+from freereg_lib.training.evaluate_split import _done, _plain, _stat, publish, rows_to_summarize, stamped
 from freereg_lib.training.splits import SPLITS
 
 SOLVERS = ("kabsch", "pnp")
@@ -236,9 +235,7 @@ def main(argv=None) -> int:
                        f"--rows {args.rows}",
                        f"python -m freereg_lib.training.evaluate_rgbd_v2 --split {args.split} --summarize --rows "
                        f"{args.rows}" + (f" --out {args.out}" if args.out else "")]
-    res["git_head"] = _git_head()
-    res["machine"] = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {platform.python_version()}"
-    publish(res, report(res), args.out)
+    publish(stamped(res), report(res), args.out)
     return 0
 
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import platform
 import subprocess
 import time
@@ -233,6 +234,13 @@ def _git_head() -> str | None:
         return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
     except Exception:
         return None
+
+
+def stamped(res: dict) -> dict:
+    """``res`` with where it was made: ``git_head`` and ``machine`` (processor, cores, Python)."""
+    res["git_head"] = _git_head()
+    res["machine"] = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {platform.python_version()}"
+    return res
 
 
 def publish(res: dict, report_text: str, out: str | None) -> None:
