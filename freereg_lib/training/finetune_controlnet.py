@@ -25,12 +25,13 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from freereg_lib.training import train_diffusion
-from freereg_lib.training.views import DEPTH_HW, DIFFUSION_HW, RENDER_HW, progress_map, room_rng, save_views
+from freereg_lib.training.views import _scene_views, progress_map, save_views
 
 ARTEFACT_STREAM = 0xF3EE00F7  # the artefacts' draws, apart from the rooms' own stream
 EDGE_JUMP_M = 0.10  # a neighbour this much nearer or farther: a shadowed edge pixel
@@ -62,53 +63,30 @@ def sensor_depth(depth: np.ndarray, rng: np.random.Generator, noise_scale: float
     return z
 
 
-def _sensor_scene_views(args) -> dict[str, np.ndarray]:
-    """The views of training room ``k`` with sensor-like hints (run in a worker process); the
-    rooms, cameras, images and cloud sampling are :func:`.views._scene_views`'s."""
-    k, views_per_scene, artefacts = args
-    import cv2
+@dataclass(frozen=True)
+class SensorArtefacts:
+    """The ``sense`` of :func:`.views._scene_views`: :func:`sensor_depth` with these settings, its draws
+    from room ``k``'s artefact stream."""
 
-    from freereg_lib.config import FreeRegConfig
-    from freereg_lib.data.pair import Pair
-    from freereg_lib.data.synthetic.indoor import _indoor_camera, _indoor_scene
-    from freereg_lib.data.synthetic.pairs import _subsample
-    from freereg_lib.geometry.cameras import backproject, intrinsics, invert, transform
-    from freereg_lib.models.base import depth_hint, resize_to
-    from freereg_lib.pipeline import depth_view
+    noise_scale: float = 2.0
+    edge_px: int = 2
+    blobs: int = 3
+    far_m: float = 6.0
 
-    cfg = FreeRegConfig()
-    rng = room_rng(k)
-    art = np.random.default_rng((ARTEFACT_STREAM, int(k)))
-    scene, room = _indoor_scene(rng)
-    H, W = RENDER_HW
-    f = 525.0 * W / 640
-    K = intrinsics(f, f, (W - 1) / 2, (H - 1) / 2)
-    out = {"rgb": [], "hint": [], "depth": []}
-    for _ in range(views_per_scene):
-        T_world_cam = _indoor_camera(rng, room)
-        hits, depth, _ids = scene.camera_view(T_world_cam, K, RENDER_HW)
-        image = scene.shade(hits, RENDER_HW)
-        sensed = sensor_depth(depth, art, **artefacts)
-        pts = transform(T_world_cam, backproject(sensed, K)[0])
-        # The room stream draws the clean cloud's subsample as .views does, so that the next camera is
-        # that view's; the sensed cloud is subsampled on the artefact stream.
-        _subsample(rng, int(np.count_nonzero(depth > 0)))
-        pts = pts[_subsample(art, len(pts))]
-        pair = Pair(image=image, K_image=K, points=pts, K_depth=K.copy(), depth_size=RENDER_HW,
-                    T_pc_sensor=T_world_cam, T_cam_pc=invert(T_world_cam), name=f"train/{k}")
-        dense = depth_view(pair, cfg).dense
-        out["rgb"].append(resize_to(image, DIFFUSION_HW).transpose(2, 0, 1))
-        out["hint"].append(np.rint(depth_hint(dense, DIFFUSION_HW) * 255).astype(np.uint8))
-        out["depth"].append(cv2.resize(depth.astype(np.float32), DEPTH_HW[::-1], interpolation=cv2.INTER_NEAREST))
-    return {key: np.stack(v) for key, v in out.items()}
+    def rng(self, k: int) -> np.random.Generator:
+        return np.random.default_rng((ARTEFACT_STREAM, int(k)))
+
+    def __call__(self, depth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        return sensor_depth(depth, rng, self.noise_scale, self.edge_px, self.blobs, self.far_m)
 
 
 def sensor_views(n_scenes: int, views_per_scene: int = 4, artefacts: dict | None = None, workers: int | None = 1,
                  progress: bool = True) -> dict[str, np.ndarray]:
     """Views of training rooms ``0 .. n_scenes-1`` with sensor-like hints, in the layout of
     :func:`.views.render_views` (the same arrays whatever ``workers`` is)."""
-    jobs = [(k, views_per_scene, dict(artefacts or {})) for k in range(n_scenes)]
-    parts = progress_map(_sensor_scene_views, jobs, workers, "rendering sensor-like views", "room", progress)
+    sense = SensorArtefacts(**(artefacts or {}))
+    jobs = [(k, views_per_scene, "indoor", sense) for k in range(n_scenes)]
+    parts = progress_map(_scene_views, jobs, workers, "rendering sensor-like views", "room", progress)
     return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
 
 

@@ -41,8 +41,12 @@ def room_rng(k: int) -> np.random.Generator:
 
 
 def _scene_views(args) -> dict[str, np.ndarray]:
-    """All views of training room ``k`` (run in a worker process)."""
-    k, views_per_scene, kind = args
+    """All views of training room ``k`` (run in a worker process): ``(k, views_per_scene, kind)``, or
+    with a fourth item ``sense``, which turns each view's depth frame into a sensor's before its cloud
+    is made (``sense.rng(k)`` draws the artefacts and the sensed cloud's subsample; ``sense(depth, rng)``
+    returns the sensed frame; the cameras, images and ``depth`` stay the clean ones)."""
+    k, views_per_scene, kind, *rest = args
+    sense = rest[0] if rest else None
     import cv2
 
     from freereg_lib.config import FreeRegConfig
@@ -57,6 +61,7 @@ def _scene_views(args) -> dict[str, np.ndarray]:
         raise ValueError(f"training views exist for the indoor world only, got kind={kind!r}")
     cfg = FreeRegConfig()
     rng = room_rng(k)
+    art = sense.rng(k) if sense is not None else None
     scene, room = _indoor_scene(rng)
     H, W = RENDER_HW
     f = 525.0 * W / 640
@@ -66,8 +71,15 @@ def _scene_views(args) -> dict[str, np.ndarray]:
         T_world_cam = _indoor_camera(rng, room)
         hits, depth, _ids = scene.camera_view(T_world_cam, K, RENDER_HW)
         image = scene.shade(hits, RENDER_HW)
-        pts = transform(T_world_cam, backproject(depth, K)[0])
-        pts = pts[_subsample(rng, len(pts))]
+        if sense is None:
+            pts = transform(T_world_cam, backproject(depth, K)[0])
+            pts = pts[_subsample(rng, len(pts))]
+        else:
+            pts = transform(T_world_cam, backproject(sense(depth, art), K)[0])
+            # The room stream draws the clean cloud's subsample all the same, so that the next camera is
+            # the clean views' next camera; the sensed cloud is subsampled on the artefact stream.
+            _subsample(rng, int(np.count_nonzero(depth > 0)))
+            pts = pts[_subsample(art, len(pts))]
         pair = Pair(image=image, K_image=K, points=pts, K_depth=K.copy(), depth_size=RENDER_HW,
                     T_pc_sensor=T_world_cam, T_cam_pc=invert(T_world_cam), name=f"train/{k}")
         dense = depth_view(pair, cfg).dense
