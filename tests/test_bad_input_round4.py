@@ -80,9 +80,10 @@ def _verdict(n_inliers: int, n_matches: int, solver: str = "kabsch") -> str:
 
 
 def test_the_verdict_prints_the_numbers_it_compares():
-    assert _verdict(25, 172) == "inlier ratio 14.5% (25 / 172) below 15.0%"  # was "15% below 15%"
-    assert _verdict(1499, 10_000) == "inlier ratio 14.99% (1499 / 10000) below 15.0%"
-    assert _verdict(13, 200, "pnp") == "inlier ratio 6.5% (13 / 200) below 7.0%"
+    assert _verdict(50, 209) == "inlier ratio 23.9% (50 / 209) below 24.0%"  # not "24% below 24%"
+    assert _verdict(2399, 10_000) == "inlier ratio 23.99% (2399 / 10000) below 24.0%"
+    assert _verdict(1499, 20_000, "pnp") == "inlier ratio 7.495% (1499 / 20000) below 7.5%"
+    assert _verdict(47, 100) == "too few inliers (47 < 48)"
 
 
 # --------------------------------------------------------------------------------------

@@ -1,55 +1,73 @@
-"""The verdict rule on pairs it was not fitted on (docs/your_data.md, "Registered or failed").
+"""The rows the verdict rule is fitted on and reported on (docs/your_data.md, "Registered or failed").
 
-The rule's thresholds (:data:`freereg_lib.pipeline.register.MIN_INLIERS`, ``MIN_INLIER_RATIO``,
-``MAX_SCALE``) were set on ICL pairs with frame gaps of 10-80 (``tests/fixtures/verdict_icl_rows.csv``).
-This runs the pairs with gaps of 90-150, which no threshold was chosen on, as ``freereg register
-IMAGE CLOUD --depth-pose identity --image-depth DEPTH --backend stub`` now runs them: the cloud
-file in its sensor's frame, the setting the command chooses for it (``3dmatch``), FreeReg-G with
-FPFH, the stub's monocular depth and the true depth, Kabsch and PnP, 50,000 iterations. Its rows
-have the columns of ``python -m freereg_lib.commands.verdict_measure``, which counts them::
+The shipped ICL living-room sample has 22 frames (0, 10, ..., 210). The rule is fitted on the pairs
+within the first half of the trajectory and reported on the pairs within the second half
+(:data:`freereg_lib.commands.verdict_measure.SPLIT`): no frame of one half is in a pair of the
+other. Each pair is run as ``freereg register IMAGE CLOUD --depth-pose identity --image-depth DEPTH
+--backend stub`` runs it: the cloud file in its sensor's frame, the setting the command chooses for
+it (``3dmatch``), FreeReg-G with FPFH, the stub's monocular depth and the true depth, Kabsch and
+PnP, 50,000 iterations. A row per (pair, depth, solver), appended to ``--out`` pair by pair (a
+rerun skips the pairs already there)::
 
-    python tools/verdict_holdout.py --pairs 30 --out tests/fixtures/verdict_icl_holdout_rows.csv
-    python -m freereg_lib.commands.verdict_measure --rows tests/fixtures/verdict_icl_holdout_rows.csv
+    python tools/verdict_holdout.py fit --out tests/fixtures/verdict_icl_fit_rows.csv
+    python tools/verdict_holdout.py report --out tests/fixtures/verdict_icl_report_rows.csv
+    python -m freereg_lib.commands.verdict_measure --fit tests/fixtures/verdict_icl_fit_rows.csv \\
+        --rows tests/fixtures/verdict_icl_report_rows.csv
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
+import sys
+import time
 
 import pandas as pd
 
 from freereg_lib.commands.real_frames import run
+from freereg_lib.commands.verdict_measure import SPLIT, pairs_within
 from freereg_lib.config import config_for
 from freereg_lib.data.datasets.icl import ICLSample
 from freereg_lib.data.sources import spread
 
-MIN_GAP, MAX_GAP = 90, 150  # the fitted rows had gaps of 10-80 frames
 KEEP = ("depth", "solver", "success", "n_matches", "n_inliers", "scale", "RE", "TE", "seconds")
 
 
-def holdout_rows(n_pairs: int = 30, iters: int = 50_000, progress: bool = True) -> list[dict]:
-    """One row per (pair, depth, solver) of ``n_pairs`` pairs spread over the gaps 90-150."""
+def half_rows(half: str, out: str, n_pairs: int | None = None, iters: int = 50_000) -> pd.DataFrame:
+    """Run the pairs within ``half`` of :data:`SPLIT` (``n_pairs`` of them spread over the list,
+    default all), appending each pair's four rows to the CSV ``out``; the rows of ``out``."""
     sample = ICLSample()
-    listed = sample.pair_list(max_gap=MAX_GAP, min_gap=MIN_GAP)
-    # As the command reads a cloud file: no sensor depth map, the cloud projected on its sensor.
-    pairs = [dataclasses.replace(sample.pair(*listed[k]), sensor_depth=None) for k in spread(len(listed), n_pairs)]
-    gaps = {p.name: p.meta["frame_cloud"] - p.meta["frame_image"] for p in pairs}
+    listed = pairs_within(SPLIT[half])
+    chosen = [listed[k] for k in spread(len(listed), n_pairs)]
+    done = set(pd.read_csv(out)["pair"]) if os.path.exists(out) and os.path.getsize(out) else set()
     cfg = config_for("3dmatch", ransac_iters=iters)  # what cli.choose_setting picks for these clouds
-    return [{"pair": r["pair"], "gap": gaps[r["pair"]], **{k: r[k] for k in KEEP}}
-            for r in run(depths=("stub", "true"), solvers=("kabsch", "pnp"), cfg=cfg, progress=progress, pairs=pairs)]
+    t_start = time.perf_counter()
+    for n, (i, j) in enumerate(chosen, 1):
+        # As the command reads a cloud file: no sensor depth map, the cloud projected on its sensor.
+        pair = dataclasses.replace(sample.pair(i, j), sensor_depth=None)
+        if pair.name in done:
+            continue
+        t0 = time.perf_counter()
+        rows = [{"pair": r["pair"], "gap": j - i, **{k: r[k] for k in KEEP}}
+                for r in run(depths=("stub", "true"), solvers=("kabsch", "pnp"), cfg=cfg, progress=False, pairs=[pair])]
+        pd.DataFrame(rows).to_csv(out, mode="a", header=not (os.path.exists(out) and os.path.getsize(out)), index=False)
+        print(f"{half} {n}/{len(chosen)} {pair.name}: {time.perf_counter() - t0:.1f} s "
+              f"({time.perf_counter() - t_start:.0f} s so far)", flush=True)
+    return pd.read_csv(out)
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--pairs", type=int, default=30)
+    p.add_argument("half", choices=sorted(SPLIT))
+    p.add_argument("--pairs", type=int, help="pairs spread over the half's list (default: all)")
     p.add_argument("--iters", type=int, default=50_000)
-    p.add_argument("--out", required=True, help="the rows as CSV")
+    p.add_argument("--out", required=True, help="the rows as CSV (appended to)")
     a = p.parse_args(argv)
-    if a.pairs < 1 or a.iters < 1:
+    if (a.pairs is not None and a.pairs < 1) or a.iters < 1:
         p.error("--pairs and --iters must be >= 1")
-    pd.DataFrame(holdout_rows(a.pairs, a.iters)).to_csv(a.out, index=False)
+    half_rows(a.half, a.out, a.pairs, a.iters)
     return 0
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    sys.exit(main())

@@ -1,141 +1,198 @@
-"""How often is ``freereg register``'s verdict wrong? Measured on real frames.
+"""How often is ``freereg register``'s verdict wrong? Fitted on some real frames, reported on others.
 
 The command says ``REGISTERED`` or ``FAILED`` without ground truth (:func:`freereg_lib.pipeline.register._verdict`:
-enough RANSAC inliers, enough of the matches, a plausible Kabsch scale). This runs the command's
-chain on pairs of the shipped ICL living-room sample exactly as ``freereg register IMAGE CLOUD
---depth-pose identity --image-depth DEPTH --backend stub`` runs it (the cloud in its sensor's
-frame: the sensor is given; the ``demo`` config the command uses; FreeReg-G with FPFH, the stub's
-monocular depth made from the true depth; both solvers), records each pose's inliers, matches,
-scale and its true errors, and counts
+enough RANSAC inliers, enough of the matches, a plausible Kabsch scale). Its thresholds are
+:func:`fit_rule` of rows measured on the pairs within the first half of the shipped ICL living-room
+trajectory, and its error rates are counted on the pairs within the second half (:data:`SPLIT`: no
+frame is in both). ``tools/verdict_holdout.py`` writes the rows (each pair as ``freereg register
+IMAGE CLOUD --depth-pose identity --image-depth DEPTH --backend stub`` runs it, with the stub's
+monocular depth and with the true depth, by Kabsch and by PnP); this counts
 
-* false negatives: ``FAILED`` for a pose within (5 deg, 0.1 m) of the truth (there must be none);
-* false positives: ``REGISTERED`` for a pose outside the paper's (20 deg, 0.5 m).
+* false negatives: ``FAILED`` for a pose within (5 deg, 0.1 m) of the truth (:data:`GOOD`);
+* false positives: ``REGISTERED`` for a pose outside the paper's (20 deg, 0.5 m) (:data:`WRONG`),
 
-::
+each with its 95 % Clopper-Pearson interval::
 
-    python -m freereg_lib.commands.verdict_measure [--pairs 40] [--max-gap 80] [--iters 50000] [--out rows.csv]
+    python -m freereg_lib.commands.verdict_measure --fit tests/fixtures/verdict_icl_fit_rows.csv \\
+        --rows tests/fixtures/verdict_icl_report_rows.csv
 
-The pairs are spread evenly (:func:`freereg_lib.data.sources.spread`) over the sample's frame pairs
-with gaps of 10 to ``max_gap`` frames (larger gaps: harder pairs, so both verdicts occur).
+It prints the rule fitted on ``--fit`` (and whether the command's constants are that rule), then
+the command's verdict counted on ``--rows`` as the table of docs/your_data.md.
 """
 from __future__ import annotations
 
 import argparse
+import math
 
 import numpy as np
 
 GOOD = (5.0, 0.1)       # a pose this close must never be called FAILED
 WRONG = (20.0, 0.5)     # a pose outside the paper's RR thresholds must not be called REGISTERED
 
+# The frames of the shipped ICL sample (0, 10, ..., 210) the rule is fitted on and reported on: the
+# first and the second half of the trajectory; pairs only within a half, so no frame is in both.
+SPLIT = {"fit": tuple(range(0, 101, 10)), "report": tuple(range(110, 211, 10))}
+GAPS = (10, 100)  # frame gaps of the pairs within a half: all of them
 
-def pick(n_items: int, n_pairs: int, held_out: bool = False) -> list[int]:
-    """The spread selection of ``n_pairs`` (:func:`~freereg_lib.data.sources.spread`), or with
-    ``held_out`` as many pairs spread over the ones that selection left out."""
-    from freereg_lib.data.sources import spread
-
-    chosen = spread(n_items, n_pairs)
-    if not held_out:
-        return chosen
-    rest = sorted(set(range(n_items)) - set(chosen))
-    return [rest[k] for k in spread(len(rest), n_pairs)]
+MARGIN = 0.8        # the fitted thresholds sit a fifth below the weakest right pose (fit_rule)
+RATIO_STEP = 0.005  # the inlier ratio threshold is rounded down to half a percent
+SCALE_STEP = 0.05   # the scale bound is rounded up to 0.05
+SOLVERS = ("kabsch", "pnp")
 
 
-def rows(n_pairs: int = 40, max_gap: int = 80, iters: int = 50_000, solvers=("kabsch", "pnp"),
-         depths=("stub", "true"), held_out: bool = False, demo: str | None = None,
-         progress: bool = True) -> list[dict]:
-    """One row per (pair, depth, solver) with what the verdict reads and the true errors.
+def pairs_within(frames, min_gap: int = GAPS[0], max_gap: int = GAPS[1]) -> list[tuple[int, int]]:
+    """The frame pairs ``(i, j)`` with both frames in ``frames`` and ``min_gap <= j - i <= max_gap``."""
+    frames = sorted(frames)
+    return [(i, j) for i in frames for j in frames if min_gap <= j - i <= max_gap]
 
-    ``depth``: the image side's depth, the stub's monocular depth (``"stub"``: the true depth with
-    a global scale error and a smooth distortion, what the command runs) or the true depth
-    itself (``"true"``: a perfect monocular depth model, standing in for a good real backend).
-    ``held_out``: the pairs the selection of ``n_pairs`` leaves out (:func:`pick`), to check a rule
-    fitted on the first. ``demo``: the official demo folder, added as one more pair."""
-    import dataclasses
 
-    from freereg_lib.commands.cli import choose_setting
-    from freereg_lib.commands.real_frames import run
-    from freereg_lib.config import config_for
-    from freereg_lib.data.datasets.icl import ICLSample
-    from freereg_lib.commands.user_inputs import load_demo
+def frames_of(table) -> set[int]:
+    """The ICL frame numbers in the ``pair`` column (``icl/00000-00010``) of ``table``."""
+    return {int(f) for name in table["pair"] for f in name.split("/")[-1].split("-")}
 
-    sample = ICLSample()
-    listed = sample.pair_list(max_gap=max_gap)
-    pairs = [load_demo(demo)] if demo else []
-    # As the command reads it: a cloud file (no sensor depth map) in its sensor's frame.
-    pairs += [dataclasses.replace(sample.pair(*listed[k]), sensor_depth=None)
-              for k in pick(len(listed), n_pairs, held_out)]
-    gaps = {p.name: p.meta.get("frame_cloud", 0) - p.meta.get("frame_image", 0) for p in pairs}
-    # The setting the command chooses for each pair (cli.choose_setting), as it would run it.
-    by_setting: dict[str, list] = {}
-    for p in pairs:
-        by_setting.setdefault(choose_setting("auto", p, False, False, p is pairs[0] and bool(demo))[0], []).append(p)
-    keep = ("depth", "solver", "success", "n_matches", "n_inliers", "scale", "RE", "TE", "seconds")
-    out = []
-    for setting, group in by_setting.items():
-        cfg = config_for(setting, ransac_iters=iters)
-        out += [{"pair": r["pair"], "gap": gaps[r["pair"]], "setting": setting, **{k: r[k] for k in keep}}
-                for r in run(depths=depths, solvers=solvers, cfg=cfg, progress=progress, pairs=group)]
+
+def _good(table) -> np.ndarray:
+    with np.errstate(invalid="ignore"):
+        return ((table["RE"] < GOOD[0]) & (table["TE"] < GOOD[1])).to_numpy()
+
+
+def _wrong(table) -> np.ndarray:
+    with np.errstate(invalid="ignore"):
+        return ~((table["RE"] < WRONG[0]) & (table["TE"] < WRONG[1])).to_numpy()
+
+
+def fit_rule(table) -> dict:
+    """The verdict's thresholds fitted on ``table`` (rows with the columns ``solver, success,
+    n_matches, n_inliers, scale, RE, TE``): ``{"min_inliers": {solver: int}, "min_ratio": {solver:
+    float}, "max_scale": float}``, as :mod:`freereg_lib.pipeline.register` holds them.
+
+    The criterion: the largest thresholds that call every right pose of ``table`` (a solved pose
+    within :data:`GOOD`, (5 deg, 0.1 m), of the truth) ``REGISTERED`` with a safety margin, so
+    that as many wrong poses as that allows are called ``FAILED``. Per solver, over its right
+    poses (both depths):
+
+    * ``min_inliers``: :data:`MARGIN` (0.8) times the fewest inliers, rounded down;
+    * ``min_ratio``: 0.8 times the smallest inlier ratio (inliers / matches), rounded down to
+      half a percent (:data:`RATIO_STEP`);
+    * ``max_scale`` (Kabsch's similarity; PnP has none): the scale farthest from 1 (as
+      ``max(s, 1 / s)``) with its logarithm widened by 1 / 0.8, rounded up to 0.05.
+
+    Each threshold only rejects more poses as it rises (the scale bound as it tightens), and
+    each right pose passes each one, so these are the largest admissible and reject every wrong
+    pose any admissible rule rejects. Deterministic: no search, no randomness."""
+    out: dict = {"min_inliers": {}, "min_ratio": {}}
+    good = _good(table) & table["success"].astype(bool).to_numpy()
+    for solver in SOLVERS:
+        right = table[good & (table["solver"] == solver).to_numpy()]
+        if right.empty:
+            raise ValueError(f"no right {solver} pose to fit the verdict on")
+        inliers = right["n_inliers"].to_numpy(dtype=float)
+        ratio = inliers / right["n_matches"].to_numpy(dtype=float)
+        out["min_inliers"][solver] = math.floor(MARGIN * inliers.min() + 1e-9)
+        out["min_ratio"][solver] = round(math.floor(MARGIN * ratio.min() / RATIO_STEP + 1e-9) * RATIO_STEP, 4)
+        if solver == "kabsch":
+            scale = right["scale"].to_numpy(dtype=float)
+            far = float(np.max(np.maximum(scale, 1 / scale)))
+            out["max_scale"] = round(math.ceil(far ** (1 / MARGIN) / SCALE_STEP - 1e-9) * SCALE_STEP, 4)
     return out
 
 
-def verdicts(table, min_inliers=None, min_ratio=None, max_scale=None) -> np.ndarray:
-    """The command's verdict for each row of ``table`` (a DataFrame of :func:`rows`), computed
-    by :func:`freereg_lib.pipeline.register._verdict` itself; thresholds default to the command's."""
+def command_rule() -> dict:
+    """The thresholds the command uses (:mod:`freereg_lib.pipeline.register`), as :func:`fit_rule` gives them."""
+    from freereg_lib.pipeline import register as R
+
+    return {"min_inliers": {s: R.MIN_INLIERS[s] for s in SOLVERS},
+            "min_ratio": {s: R.MIN_INLIER_RATIO[s] for s in SOLVERS}, "max_scale": R.MAX_SCALE}
+
+
+def verdicts(table, rule: dict | None = None) -> np.ndarray:
+    """The command's verdict for each row of ``table``, computed by
+    :func:`freereg_lib.pipeline.register._verdict` itself with ``rule`` (a :func:`fit_rule`
+    result; default the command's thresholds)."""
     from types import SimpleNamespace
 
     from freereg_lib.pipeline import register as R
 
+    rule = rule or command_rule()
     out = []
     for r in table.to_dict("records"):
+        s = r["solver"]
         res = SimpleNamespace(success=bool(r["success"]), reason="", scale=float(r["scale"]),
                               n_inliers=int(r["n_inliers"]))
-        ok, _ = R._verdict(res, {"matches": int(r["n_matches"]), "note": ""}, r["solver"],
-                           *R.verdict_thresholds(r["solver"], min_inliers, min_ratio, max_scale))
+        ok, _ = R._verdict(res, {"matches": int(r["n_matches"]), "note": ""}, s,
+                           rule["min_inliers"][s], rule["min_ratio"][s], rule["max_scale"])
         out.append(ok)
     return np.asarray(out, dtype=bool)
 
 
+def clopper_pearson(k: int, n: int, level: float = 0.95) -> tuple[float, float]:
+    """The exact (Clopper-Pearson) ``level`` interval of a proportion ``k / n``; (nan, nan) for n = 0."""
+    from scipy.stats import beta
+
+    if n == 0:
+        return math.nan, math.nan
+    a = (1 - level) / 2
+    lo = 0.0 if k == 0 else float(beta.ppf(a, k, n - k + 1))
+    hi = 1.0 if k == n else float(beta.ppf(1 - a, k + 1, n - k))
+    return lo, hi
+
+
 def rates(table, ok: np.ndarray) -> dict:
-    """False negatives (FAILED within ``GOOD``) and false positives (REGISTERED outside ``WRONG``)."""
-    re, te = table["RE"].to_numpy(), table["TE"].to_numpy()
-    with np.errstate(invalid="ignore"):
-        good = (re < GOOD[0]) & (te < GOOD[1])
-        right = (re < WRONG[0]) & (te < WRONG[1])
-    wrong = ~right
+    """False negatives (FAILED within ``GOOD``) and false positives (REGISTERED outside ``WRONG``),
+    with their 95 % Clopper-Pearson intervals."""
+    good, wrong = _good(table), _wrong(table)
+    right = ~wrong
+    fn, fp = int((good & ~ok).sum()), int((wrong & ok).sum())
     return {"rows": len(table), "good": int(good.sum()), "wrong": int(wrong.sum()),
-            "FN": int((good & ~ok).sum()), "FN_rate": float((good & ~ok).sum() / max(good.sum(), 1)),
-            "FP": int((wrong & ok).sum()), "FP_rate": float((wrong & ok).sum() / max(wrong.sum(), 1)),
-            "registered": int(ok.sum()), "missed_right": int((right & ~ok).sum())}
+            "FN": fn, "FN_rate": fn / max(int(good.sum()), 1), "FN_ci": clopper_pearson(fn, int(good.sum())),
+            "FP": fp, "FP_rate": fp / max(int(wrong.sum()), 1), "FP_ci": clopper_pearson(fp, int(wrong.sum())),
+            "registered": int(ok.sum()), "right": int(right.sum()), "missed_right": int((right & ~ok).sum())}
+
+
+def _pct(x: float) -> str:
+    return "-" if math.isnan(x) else "100" if x >= 0.995 else "0" if x == 0 else f"{100 * x:.2g}"
+
+
+HEADER = ("| | poses | within (5 deg, 0.1 m) | FAILED among them (false negatives) | outside (20 deg, 0.5 m) "
+          "| REGISTERED among them (false positives) | within (20 deg, 0.5 m) but FAILED |\n"
+          "|---|---|---|---|---|---|---|")
+
+
+def table_lines(table, rule: dict | None = None) -> list[str]:
+    """docs/your_data.md's table of the verdict on ``table``: per solver and all."""
+    lines = HEADER.split("\n")
+    for name, sub in [("Kabsch", table[table["solver"] == "kabsch"]), ("PnP", table[table["solver"] == "pnp"]),
+                      ("all", table)]:
+        r = rates(sub, verdicts(sub, rule))
+        fn = f"{r['FN']} ({_pct(r['FN_rate'])} %, [{_pct(r['FN_ci'][0])}, {_pct(r['FN_ci'][1])}])"
+        fp = f"{r['FP']} ({_pct(r['FP_rate'])} %, [{_pct(r['FP_ci'][0])}, {_pct(r['FP_ci'][1])}])"
+        lines.append(f"| {name} | {r['rows']} | {r['good']} | {fn} | {r['wrong']} | {fp} | "
+                     f"{r['missed_right']} of {r['right']} |")
+    return lines
+
+
+def describe(rule: dict) -> str:
+    """A rule as one line: per solver its inliers, ratio and (Kabsch) scale bound."""
+    return "; ".join(f"{s}: >= {rule['min_inliers'][s]} inliers, >= {rule['min_ratio'][s]:.1%} of the matches"
+                     + (f", scale within [{1 / rule['max_scale']:.2f}, {rule['max_scale']:g}]" if s == "kabsch" else "")
+                     for s in SOLVERS)
 
 
 def main(argv=None) -> None:
     import pandas as pd
 
-    from freereg_lib.pipeline.register import verdict_thresholds
-
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--pairs", type=int, default=40)
-    p.add_argument("--max-gap", type=int, default=80)
-    p.add_argument("--iters", type=int, default=50_000)
-    p.add_argument("--held-out", action="store_true", help="the pairs the selection of --pairs leaves out")
-    p.add_argument("--demo", help="the official demo folder: one more pair")
-    p.add_argument("--out", help="write the rows as CSV")
-    p.add_argument("--rows", help="read rows written before instead of running")
+    p.add_argument("--fit", required=True, help="the rows to fit the rule on (tools/verdict_holdout.py fit)")
+    p.add_argument("--rows", required=True, help="the rows to count it on (tools/verdict_holdout.py report)")
     a = p.parse_args(argv)
-    table = pd.read_csv(a.rows) if a.rows else pd.DataFrame(rows(a.pairs, a.max_gap, a.iters, held_out=a.held_out, demo=a.demo))
-    if a.out:
-        table.to_csv(a.out, index=False)
-    rule = "; ".join(f"{s}: >= {n} inliers, >= {q:.0%} of the matches" + (f", scale within {m:g}x" if s == "kabsch" else "")
-                     for s in ("kabsch", "pnp") for n, q, m in [verdict_thresholds(s)])
-    print(f"{table['pair'].nunique()} pairs x {table['depth'].nunique()} depths x {table['solver'].nunique()} "
-          f"solvers; the rule: {rule}")
-    groups = [("all", table), *table.groupby(["depth", "solver"])]
-    for solver, sub in groups:
-        solver = solver if isinstance(solver, str) else " + ".join(solver)
-        r = rates(sub, verdicts(sub))
-        print(f"  {solver:12s}: {r['rows']} poses, {r['good']} within {GOOD[0]:g} deg / {GOOD[1]:g} m, {r['wrong']} "
-              f"outside {WRONG[0]:g} deg / {WRONG[1]:g} m; FAILED within: {r['FN']} ({r['FN_rate']:.0%}), "
-              f"REGISTERED outside: {r['FP']} ({r['FP_rate']:.0%}); right but FAILED: {r['missed_right']}")
+    fit, report = pd.read_csv(a.fit), pd.read_csv(a.rows)
+    rule = fit_rule(fit)
+    shared = frames_of(fit) & frames_of(report)
+    print(f"fitted on {fit['pair'].nunique()} pairs ({len(fit)} poses) of frames {sorted(frames_of(fit))}: {describe(rule)}")
+    print("the command's rule: " + ("the same" if rule == command_rule() else describe(command_rule())))
+    print(f"counted on {report['pair'].nunique()} pairs ({len(report)} poses) of frames {sorted(frames_of(report))}"
+          + (f"; frames in both: {sorted(shared)}" if shared else "; no frame in both"))
+    print("\n".join(table_lines(report, rule)))
 
 
 if __name__ == "__main__":
