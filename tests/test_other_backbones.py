@@ -150,3 +150,18 @@ def test_pair_rows_on_the_stub_give_every_row_and_solver():
     # The stand-in alone skips the depth branch.
     rows, sec = ob.pair_rows(pair, backend, cfg, rows=("standin",), solvers=("kabsch",))
     assert [r["row"] for r in rows] == ["standin"] and "image diffusion" in sec
+
+
+def test_real_weights_load_from_the_weights_folder_with_its_normalisation(tiny, tmp_path):
+    """A folder laid out as the download command makes it (<weights_dir>/<name>) is found and loaded
+    with from_pretrained, and its preprocessor_config.json's mean / std replace the kind's."""
+    import json
+
+    folder = tmp_path / "clip-vit-base-patch16"
+    tiny["clip"].model.save_pretrained(folder)
+    (folder / "preprocessor_config.json").write_text(json.dumps({"image_mean": [0.5, 0.5, 0.5],
+                                                                 "image_std": [0.25, 0.25, 0.25]}))
+    bb = ob.load_backbone("clip", "real", FreeRegConfig(), weights_dir=tmp_path, short_side=64)
+    assert bb.mean == (0.5, 0.5, 0.5) and bb.std == (0.25, 0.25, 0.25) and bb.backend == "real"
+    img = np.random.default_rng(1).integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    assert bb(img).shape == (32, 4, 5)
