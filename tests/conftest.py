@@ -8,6 +8,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy: see Makefile
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("MKL_NUM_THREADS", "1")
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +17,67 @@ import pytest
 from freereg_lib.geometry import cameras
 
 NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
+
+
+# `make test` runs two workers (`-n 2 --dist loadfile`) with the scheduler below: a file's tests stay
+# on one worker (they share module fixtures, e.g. the real-frame rows), except the notebook runs of
+# test_notebooks.py, each its own unit; units go out longest first by the seconds recorded in
+# tests/durations.json (`pytest --record-durations ...` rewrites it), unknown ones last. xdist's own
+# order (most tests first) left the one-test notebooks, the longest units, for the end, and the ten
+# notebook runs of test_notebooks.py, as one unit, ran last on one worker while the other sat idle.
+ALONE = ("test_notebooks.py::test_notebook_runs_with_other_parameters", "test_notebooks.py::test_reproduce_quick")
+DURATIONS = Path(__file__).resolve().parent / "durations.json"
+
+
+def unit_of(nodeid: str) -> str:
+    nodeid = nodeid.split("@", 1)[0]
+    return nodeid if any(key in nodeid for key in ALONE) else nodeid.split("::", 1)[0]
+
+
+def pytest_addoption(parser):
+    parser.addoption("--record-durations", action="store_true",
+                     help=f"write each scheduling unit's seconds to {DURATIONS.name}")
+
+
+def pytest_xdist_make_scheduler(config, log):
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from collections import OrderedDict
+
+    from xdist.scheduler import LoadScopeScheduling
+
+    seconds = json.loads(DURATIONS.read_text()) if DURATIONS.is_file() else {}
+
+    class LongestFirstQueue(OrderedDict):
+        def popitem(self, last: bool = True):
+            if last or not self:
+                return super().popitem(last)
+            unit = max(self, key=lambda u: seconds.get(u, 0.0))  # the first of equals: collection order
+            return unit, self.pop(unit)
+
+    class LongestFirst(LoadScopeScheduling):
+        def __init__(self, config, log=None):
+            super().__init__(config, log)
+            self.workqueue = LongestFirstQueue()
+
+        def _split_scope(self, nodeid: str) -> str:
+            return unit_of(nodeid)
+
+    return LongestFirst(config, log)
+
+
+_recorded: dict[str, float] = {}
+
+
+def pytest_runtest_logreport(report):
+    if report.when in ("setup", "call", "teardown"):
+        unit = unit_of(report.nodeid)
+        _recorded[unit] = _recorded.get(unit, 0.0) + report.duration
+
+
+def pytest_sessionfinish(session):
+    if session.config.getoption("record_durations") and not hasattr(session.config, "workerinput"):
+        DURATIONS.write_text(json.dumps({u: round(s, 1) for u, s in sorted(_recorded.items())}, indent=0) + "\n")
 
 
 @pytest.fixture

@@ -5,7 +5,9 @@
 * Each notebook runs through papermill with non-default parameters (another seed, fewer pairs,
   the tiny backend for 01, the embedded ICL sample for 02 and 04, a demo-layout pair for 04) into a temporary
   ``out_dir`` / ``figures_dir``; the tables it writes (CSV) and figures (PNG) must be there,
-  and the metric columns of the tables must hold finite numbers.
+  and the metric columns of the tables must hold finite numbers; no Markdown cell of the
+  executed copy states a number its outputs contradict (:mod:`freereg_lib.report.prose`), and in
+  notebook 00's a number and a glue name planted into its Markdown are flagged.
 * ``python -m freereg_lib reproduce --quick`` prints a Markdown table of FMR / IR / IN / RR.
 
 The default-parameter runs are ``pytest --nbmake notebooks/`` (see the Makefile).
@@ -47,7 +49,7 @@ METRIC_COLUMNS = ("FMR", "IR", "IN", "RR")
 # embedded ICL frames for 02 and 04. ``knobs`` only shorten a run and are passed only when
 # the notebook declares them; ``params`` must all be declared.
 RUNS = {
-    "00_preliminaries": dict(params={"seed": 1, "n_pairs": 1}, knobs={}),
+    "00_preliminaries": dict(params={"seed": 3, "n_pairs": 1}, knobs={"corrupt_fraction": 0.5}),
     "01_diffusion_features": dict(
         params={"backend": "tiny", "seed": 1, "n_pairs": 1},
         knobs={"t_hats": [150, 50], "ransac_iters": 2000},
@@ -163,10 +165,12 @@ def test_notebook_runs_with_other_parameters(run, tmp_path):
 
         make_demo(tmp_path / "demo", rgb_size=(120, 160), dpt_size=(60, 80))
 
+    executed = tmp_path / f"{stem}.executed.ipynb"
     papermill.execute_notebook(
-        str(path), str(tmp_path / f"{stem}.executed.ipynb"), parameters=params,
+        str(path), str(executed), parameters=params,
         kernel_name="python3", cwd=str(NOTEBOOKS), progress_bar=False,
     )
+    _check_prose(nbformat.read(executed, as_version=4), stem)
 
     tables = sorted(out_dir.glob("*.csv"))
     assert tables, f"{stem} wrote no CSV table into out_dir"
@@ -188,6 +192,27 @@ def test_notebook_runs_with_other_parameters(run, tmp_path):
 
     if stem == "04_benchmark":
         _check_benchmark_outputs(out_dir, params)
+
+
+def _check_prose(nb, stem: str) -> None:
+    """The executed copy's prose agrees with its outputs; in notebook 00 planted faults are caught."""
+    import copy
+
+    from freereg_lib.report.prose import check_notebook, glue_references, glued_names
+
+    problems = check_notebook(nb, stem)
+    assert problems == [], "\n".join(map(str, problems))
+    referenced = {n for c in nb["cells"] if c["cell_type"] == "markdown" for n in glue_references(c["source"])}
+    assert referenced <= glued_names(nb), f"{stem}: referenced but not glued: {referenced - glued_names(nb)}"
+    if stem != "00_preliminaries":
+        return
+    assert referenced
+    planted = copy.deepcopy(nb)
+    md = {c.get("id"): c for c in planted["cells"] if c["cell_type"] == "markdown"}
+    md["c36"]["source"] += "\nWith half the matches corrupted, IR is 0.62 on this pair."
+    md["c33"]["source"] += "\nThe feature pass runs at {glue:text}`t_feature`."
+    found = [(p.cell_id, p.kind, p.found) for p in check_notebook(planted, stem)]
+    assert found == [("c33", "glue", "t_feature"), ("c36", "number", "0.62")], found
 
 
 def _check_benchmark_outputs(out_dir: Path, params: dict) -> None:
