@@ -29,8 +29,10 @@ from freereg_lib import pipeline
 from freereg_lib.config import FreeRegConfig
 from freereg_lib.data import synthetic
 from freereg_lib.models import get_backend
-from freereg_lib.training.evaluate import bootstrap_ci, paired_permutation_p
-from freereg_lib.training.evaluate_split import _done, _plain, _stat, publish, rows_to_summarize, stamped
+from freereg_lib.training.evaluate import paired_permutation_p
+from freereg_lib.training.evaluate_split import (
+    _done, _plain, _stat, load_average_range, paired_difference, publish, rows_to_summarize, stamped,
+)
 from freereg_lib.training.splits import SPLITS
 
 STEPS = (5, 10, 15, 20)
@@ -96,10 +98,7 @@ def summarize(recs: list[dict], split_name: str) -> dict:
     for s in steps[:-1]:
         for solver in ("kabsch", "pnp"):
             a, b = per[f"{s} {solver}"]["registered_per_pair"], per[f"{top} {solver}"]["registered_per_pair"]
-            d = np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64)
-            tests[f"RR {solver}: {s} - {top} iterations"] = {
-                "diff": 100 * float(d.mean()), "diff_ci": [100 * x for x in bootstrap_ci(d)],
-                "p": paired_permutation_p(a, b)}
+            tests[f"RR {solver}: {s} - {top} iterations"] = paired_difference(a, b)
         a, b = per[f"{s} kabsch"], per[f"{top} kabsch"]
         tests[f"IR: {s} - {top} iterations"] = {"diff": 100 * float(np.mean(a["IR_per_pair"]) - np.mean(b["IR_per_pair"])),
                                                 "p": paired_permutation_p(a["IR_per_pair"], b["IR_per_pair"])}
@@ -107,7 +106,7 @@ def summarize(recs: list[dict], split_name: str) -> dict:
             "pair_seeds": f"{split.seed} * 1_000_003 + k for k in 0..{len(recs) - 1}", "n_pairs": len(recs),
             "backend": recs[0]["label"] if recs else None, "steps": steps, "results": per, "tests": tests,
             "seconds_geometric": float(np.median([r["seconds_geometric"] for r in recs])) if recs else None,
-            "load_average": [min(r["load_average"] for r in recs), max(r["load_average"] for r in recs)] if recs else None,
+            "load_average": load_average_range(recs),
             "note": "Fused FreeReg (w = 0.5), layers (0, 4, 6), FPFH; seconds: median wall-clock of the diffusion "
                     "half per pair on the CPU, with the machine's 1-minute load average range beside them; "
                     "p: two-sided paired sign-flip permutation test over pairs; intervals: 95 % percentile bootstrap."}

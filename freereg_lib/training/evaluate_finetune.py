@@ -30,8 +30,9 @@ import numpy as np
 from tqdm import tqdm
 
 from freereg_lib.config import FreeRegConfig
-from freereg_lib.training.evaluate import bootstrap_ci, paired_permutation_p
-from freereg_lib.training.evaluate_split import RowsError, _plain, _stat, parse_shard, publish, stamped
+from freereg_lib.training.evaluate_split import (
+    RowsError, _plain, _stat, difference_line, paired_difference, parse_shard, publish, stamped,
+)
 from freereg_lib.training.splits import SPLITS
 
 MODELS = ("committed", "finetuned")
@@ -153,15 +154,11 @@ def summarize(pairs: list[dict[str, dict]], split_name: str) -> dict:
         per[f"{m} seconds_diffusion"] = float(np.median([p[m]["seconds_diffusion"] for p in pairs]))
     for solver in SOLVERS:
         a, b = per[f"finetuned {solver}"], per[f"committed {solver}"]
-        for metric, key, scale in (("RR", "registered_per_pair", 100), ("IR", "IR_per_pair", 100),
-                                   ("FMR", "IR_per_pair", 100)):
+        for metric, key in (("RR", "registered_per_pair"), ("IR", "IR_per_pair"), ("FMR", "IR_per_pair")):
             x, y = np.asarray(a[key], dtype=np.float64), np.asarray(b[key], dtype=np.float64)
             if metric == "FMR":
                 x, y = (x > cfg.fmr_ratio).astype(np.float64), (y > cfg.fmr_ratio).astype(np.float64)
-            d = x - y
-            tests[f"{metric} {solver}: finetuned - committed"] = {
-                "diff": scale * float(d.mean()), "diff_ci": [scale * v for v in bootstrap_ci(d)],
-                "p": paired_permutation_p(x, y)}
+            tests[f"{metric} {solver}: finetuned - committed"] = paired_difference(x, y)
     first = pairs[0] if pairs else {}
     return {"split": split.name, "dataset_seed": split.seed, "noise_seed": split.noise_seed,
             "pair_seeds": f"{split.seed} * 1_000_003 + k for k in 0..{len(pairs) - 1}", "n_pairs": len(pairs),
@@ -187,8 +184,7 @@ def report(res: dict) -> str:
             lines.append(f"  {m:9s} {solver:6s} {r['FMR']['mean']:5.1f}  {r['IR']['mean']:5.1f}  {r['IN']:5.1f}  "
                          f"{r['RR']['mean']:5.1f}")
     for key, t in res["tests"].items():
-        lines.append(f"  {key}: {t['diff']:+.1f} points [{t['diff_ci'][0]:+.1f}, {t['diff_ci'][1]:+.1f}], "
-                     f"p = {t['p']:.4f}")
+        lines.append(difference_line(key, t))
     return "\n".join(lines)
 
 

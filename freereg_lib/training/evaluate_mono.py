@@ -48,8 +48,9 @@ from pathlib import Path
 
 import numpy as np
 
-from freereg_lib.training.evaluate import bootstrap_ci, paired_permutation_p
-from freereg_lib.training.evaluate_split import _done, _plain, _stat, publish, rows_to_summarize, stamped
+from freereg_lib.training.evaluate_split import (
+    _done, _plain, _stat, difference_line, load_average_range, paired_difference, publish, rows_to_summarize, stamped,
+)
 from freereg_lib.training.splits import SPLITS
 
 MODALITIES = ("RGB", "DPT", "cross")
@@ -247,12 +248,8 @@ def summarize(recs: list[dict], split_name: str) -> dict:
     tests = {}
     for a, b in TESTS:
         x, y = per[f"{a} kabsch"], per[f"{b} kabsch"]
-        d = np.asarray(x["registered_per_pair"], dtype=np.float64) - np.asarray(y["registered_per_pair"], dtype=np.float64)
-        tests[f"RR kabsch: {a} - {b}"] = {"diff": 100 * float(d.mean()), "diff_ci": [100 * v for v in bootstrap_ci(d)],
-                                          "p": paired_permutation_p(x["registered_per_pair"], y["registered_per_pair"])}
-        d = np.asarray(x["IR_per_pair"]) - np.asarray(y["IR_per_pair"])
-        tests[f"IR: {a} - {b}"] = {"diff": 100 * float(d.mean()), "diff_ci": [100 * v for v in bootstrap_ci(d)],
-                                   "p": paired_permutation_p(x["IR_per_pair"], y["IR_per_pair"])}
+        tests[f"RR kabsch: {a} - {b}"] = paired_difference(x["registered_per_pair"], y["registered_per_pair"])
+        tests[f"IR: {a} - {b}"] = paired_difference(x["IR_per_pair"], y["IR_per_pair"])
     parts = sorted({k for r in recs for k in r.get("seconds_parts", {})})
     return {"split": split.name, "dataset_seed": split.seed, "noise_seed": split.noise_seed, "n_pairs": len(recs),
             "pair_seeds": f"{split.seed} * 1_000_003 + k for k in 0..{len(recs) - 1}",
@@ -263,7 +260,7 @@ def summarize(recs: list[dict], split_name: str) -> dict:
             "results": per, "tests": tests,
             "seconds_per_pair": _median([r["seconds"] for r in recs]),
             "seconds_parts": {p: _median([r["seconds_parts"].get(p) for r in recs]) for p in parts},
-            "load_average": [min(r["load_average"] for r in recs), max(r["load_average"] for r in recs)] if recs else None,
+            "load_average": load_average_range(recs),
             "note": "Fused FreeReg (w = 0.5) on both views of each pair: RGB = both colour images (UNet features, micro "
                     "monocular depth of both), DPT = both depth maps (ControlNet-guided DDIM features, sensor depth of "
                     "both), cross = the image against the cloud (Table 1's setting); Kabsch with scale, PnP for cross "
@@ -280,7 +277,7 @@ def report(res: dict) -> str:
         lines.append(f"  {key:15s} {r['FMR']['mean']:5.1f}  {r['IR']['mean']:5.1f}  {r['IN']:6.1f}  {r['RR']['mean']:5.1f} "
                      f"[{r['RR']['ci'][0]:.1f}, {r['RR']['ci'][1]:.1f}]  ({r['errors']} failed)")
     for key, t in res["tests"].items():
-        lines.append(f"  {key}: {t['diff']:+.1f} points [{t['diff_ci'][0]:+.1f}, {t['diff_ci'][1]:+.1f}], p = {t['p']:.4f}")
+        lines.append(difference_line(key, t))
     lines.append(f"  seconds a pair (median): {res['seconds_per_pair']}")
     return "\n".join(lines)
 

@@ -40,8 +40,9 @@ from freereg_lib.config import FreeRegConfig
 from freereg_lib.data import synthetic
 from freereg_lib.training.coarse_to_fine import coarse_to_fine
 from freereg_lib.geometry import cameras, keypoints, metrics
-from freereg_lib.training.evaluate import bootstrap_ci, paired_permutation_p
-from freereg_lib.training.evaluate_split import _done, _plain, _stat, publish, rows_to_summarize, stamped
+from freereg_lib.training.evaluate_split import (
+    _done, _plain, _stat, difference_line, load_average_range, paired_difference, publish, rows_to_summarize, stamped,
+)
 from freereg_lib.training.splits import SPLITS
 
 SOLVERS = ("kabsch", "pnp")
@@ -185,10 +186,7 @@ def summarize(recs: list[dict], split_name: str) -> dict:
                        "registered_main_per_pair": [int(x) for x in main]}
     tests = {}
     for key, col in (("RR: pnp - kabsch", "registered_per_pair"), ("RR_main: pnp - kabsch", "registered_main_per_pair")):
-        a, b = per["pnp"][col], per["kabsch"][col]
-        d = np.asarray(a, np.float64) - np.asarray(b, np.float64)
-        tests[key] = {"diff": 100 * float(d.mean()), "diff_ci": [100 * x for x in bootstrap_ci(d)],
-                      "p": paired_permutation_p(a, b)}
+        tests[key] = paired_difference(per["pnp"][col], per["kabsch"][col])
     return {"split": split.name, "dataset_seed": split.seed, "noise_seed": split.noise_seed,
             "pair_seeds": f"{split.seed} * 1_000_003 + k for k in 0..{len(recs) - 1}", "n_pairs": len(recs),
             "use": split.use, "backend": recs[0]["label"] if recs else None, "matcher": MATCHER,
@@ -196,7 +194,7 @@ def summarize(recs: list[dict], split_name: str) -> dict:
             "thresholds_main": {"RE_deg": cfg.rr_rot_deg, "TE_m": cfg.rr_trans_m},
             "results": per, "tests": tests,
             "seconds_per_pair": float(np.median([r["seconds"] for r in recs])) if recs else None,
-            "load_average": [min(r["load_average"] for r in recs), max(r["load_average"] for r in recs)] if recs else None,
+            "load_average": load_average_range(recs),
             "note": "Fused features are not used: the coarse matcher reads the diffusion features (layers (0, 4, 6)), "
                     "the fine one FPFH. IR is the same for both solvers (one set of matches). seconds: median "
                     "wall-clock per pair on the CPU with the 1-minute load average range; intervals: 95 % "
@@ -211,8 +209,7 @@ def report(res: dict) -> str:
                      f"RR (RE/TE) {f(r['RR_main'])}  (median {r['n_matches_median']:.0f} matches, "
                      f"RMSE {r['RMSE_median']:.2f} m)")
     for key, t in res["tests"].items():
-        lines.append(f"  {key.replace(': pnp - kabsch', ' PnP - Kabsch')}: {t['diff']:+.1f} points "
-                     f"[{t['diff_ci'][0]:+.1f}, {t['diff_ci'][1]:+.1f}], p = {t['p']:.4f}")
+        lines.append(difference_line(key.replace(': pnp - kabsch', ' PnP - Kabsch'), t))
     return "\n".join(lines)
 
 

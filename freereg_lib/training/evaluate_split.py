@@ -173,6 +173,24 @@ def _stat(v) -> dict:
     return {"mean": 100 * float(v.mean()), "ci": [100 * lo, 100 * hi]}
 
 
+def paired_difference(a, b) -> dict:
+    """Mean of ``a - b`` over pairs (rates in [0, 1]) in percentage points, its 95 % bootstrap interval
+    and the two-sided paired permutation p-value."""
+    d = np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64)
+    return {"diff": 100 * float(d.mean()), "diff_ci": [100 * v for v in bootstrap_ci(d)],
+            "p": paired_permutation_p(a, b)}
+
+
+def difference_line(key: str, t: dict) -> str:
+    """A report's line for one :func:`paired_difference`: points, interval, p."""
+    return f"  {key}: {t['diff']:+.1f} points [{t['diff_ci'][0]:+.1f}, {t['diff_ci'][1]:+.1f}], p = {t['p']:.4f}"
+
+
+def load_average_range(recs: list[dict]) -> list[float] | None:
+    """The lowest and highest 1-minute load average the rows recorded (None without rows)."""
+    return [min(r["load_average"] for r in recs), max(r["load_average"] for r in recs)] if recs else None
+
+
 def summarize(recs: list[dict], split_name: str) -> dict:
     from freereg_lib.config import FreeRegConfig
 

@@ -48,8 +48,9 @@ from pathlib import Path
 import numpy as np
 
 from freereg_lib.models.base import MissingWeightsError, depth_to_uint8, on_cpu_threads, resize_to
-from freereg_lib.training.evaluate import bootstrap_ci, paired_permutation_p
-from freereg_lib.training.evaluate_split import _done, _plain, _stat, publish, rows_to_summarize, stamped
+from freereg_lib.training.evaluate_split import (
+    _done, _plain, _stat, difference_line, load_average_range, paired_difference, publish, rows_to_summarize, stamped,
+)
 from freereg_lib.training.splits import SPLITS
 
 IMAGENET_MEAN, IMAGENET_STD = (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)  # DINOv2's preprocessor
@@ -333,12 +334,6 @@ def _median(v) -> float | None:
     return float(np.median(v)) if v else None
 
 
-def _diff(a, b) -> dict:
-    d = np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64)
-    return {"diff": 100 * float(d.mean()), "diff_ci": [100 * v for v in bootstrap_ci(d)],
-            "p": paired_permutation_p(list(a), list(b))}
-
-
 def summarize(recs: list[dict], split_name: str) -> dict:
     """Per row and solver: FMR, IR, RR (%, 95 % bootstrap intervals), IN (mean count), median RE /
     TE, failures; paired tests of :data:`TESTS` (IR; RR with each solver)."""
@@ -360,9 +355,9 @@ def summarize(recs: list[dict], split_name: str) -> dict:
                                   "IR_per_pair": ir, "registered_per_pair": reg}
     tests = {}
     for a, b in TESTS:
-        tests[f"IR: {a} - {b}"] = _diff(per[f"{a} kabsch"]["IR_per_pair"], per[f"{b} kabsch"]["IR_per_pair"])
+        tests[f"IR: {a} - {b}"] = paired_difference(per[f"{a} kabsch"]["IR_per_pair"], per[f"{b} kabsch"]["IR_per_pair"])
         for s in SOLVERS:
-            tests[f"RR {s}: {a} - {b}"] = _diff(per[f"{a} {s}"]["registered_per_pair"],
+            tests[f"RR {s}: {a} - {b}"] = paired_difference(per[f"{a} {s}"]["registered_per_pair"],
                                                 per[f"{b} {s}"]["registered_per_pair"])
     parts = sorted({k for r in recs for k in r.get("seconds_parts", {})})
     return {"split": split.name, "dataset_seed": split.seed, "noise_seed": split.noise_seed, "n_pairs": len(recs),
@@ -375,7 +370,7 @@ def summarize(recs: list[dict], split_name: str) -> dict:
             "rows": ROWS, "results": per, "tests": tests,
             "seconds_per_pair": _median([r["seconds"] for r in recs]),
             "seconds_parts": {p: _median([r["seconds_parts"].get(p) for r in recs]) for p in parts},
-            "load_average": [min(r["load_average"] for r in recs), max(r["load_average"] for r in recs)] if recs else None,
+            "load_average": load_average_range(recs),
             "note": "The micro SD UNet's RGB branch on the depth map as an image (depth_to_uint8, three channels) "
                     "stands in for the paper's DINOv2 / CLIP: an RGB-trained backbone reading the depth map as an "
                     "image. All rows share the pair's image maps, keypoints and monocular depth; standin, "
@@ -392,7 +387,7 @@ def report(res: dict) -> str:
         lines.append(f"  {key:22s} {r['FMR']['mean']:5.1f}  {r['IR']['mean']:5.1f}  {r['IN']:6.1f}  {r['RR']['mean']:5.1f} "
                      f"[{r['RR']['ci'][0]:.1f}, {r['RR']['ci'][1]:.1f}]  ({r['errors']} failed)")
     for key, t in res["tests"].items():
-        lines.append(f"  {key}: {t['diff']:+.1f} points [{t['diff_ci'][0]:+.1f}, {t['diff_ci'][1]:+.1f}], p = {t['p']:.4f}")
+        lines.append(difference_line(key, t))
     lines.append(f"  seconds a pair (median): {res['seconds_per_pair']}")
     return "\n".join(lines)
 

@@ -31,6 +31,11 @@ def _ci(s: dict) -> str:
     return f"{s['mean']:.1f} % [{s['ci'][0]:.1f}, {s['ci'][1]:.1f}]"
 
 
+def _points(d: dict) -> str:
+    """A paired difference (:func:`~freereg_lib.training.evaluate_split.paired_difference`) with its interval."""
+    return f"{d['diff']:+.1f} points [{d['diff_ci'][0]:+.1f}, {d['diff_ci'][1]:+.1f}]"
+
+
 def _sig(p: float) -> str:
     from freereg_lib.training.evaluate import PERMUTATIONS
 
@@ -246,8 +251,8 @@ def table10() -> list[str]:
     for a, b in (("RGB", "cross"), ("DPT", "cross"), ("DPT", "RGB")):
         rr, ir = tests[f"RR kabsch: {a} - {b}"], tests[f"IR: {a} - {b}"]
         p_rr, p_ir = theirs[a]["RR"] - theirs[b]["RR"], theirs[a]["IR"] - theirs[b]["IR"]
-        lines.append(f"  {names[a]} - {names[b]} (the paper: RR {p_rr:+.1f}, IR {p_ir:+.1f} points): RR {rr['diff']:+.1f} "
-                     f"points [{rr['diff_ci'][0]:+.1f}, {rr['diff_ci'][1]:+.1f}] ({_sig(rr['p'])}) -> "
+        lines.append(f"  {names[a]} - {names[b]} (the paper: RR {p_rr:+.1f}, IR {p_ir:+.1f} points): RR {_points(rr)} "
+                     f"({_sig(rr['p'])}) -> "
                      f"{_verdict(rr['diff'], rr['p'], p_rr)}; IR {ir['diff']:+.1f} points ({_sig(ir['p'])}) -> "
                      f"{_verdict(ir['diff'], ir['p'], p_ir)}")
     both = all(_verdict(tests[f"RR kabsch: {a} - cross"]["diff"], tests[f"RR kabsch: {a} - cross"]["p"], 1.0)

@@ -26,7 +26,7 @@ import json
 from pathlib import Path
 
 from freereg_lib.data import paper
-from freereg_lib.training.verdicts import _ahead, _ci, _sig
+from freereg_lib.training.verdicts import _ahead, _ci, _points, _sig
 
 RGBD_V2_JSON = "rgbd_scenes_v2_test.json"  # under the micro weights' folder (an absolute path is kept)
 FINETUNE_JSON = "finetune_test.json"
@@ -109,8 +109,7 @@ def table11() -> list[str]:
                      f"{_ci(f['IR'])}; IN {c['IN']:.1f} -> {f['IN']:.1f}; RR {_ci(c['RR'])} -> {_ci(f['RR'])}")
         for metric in ("IR", "RR"):
             d = tests[f"{metric} {solver}: finetuned - committed"]
-            lines.append(f"    {metric} fine-tuned - committed: {d['diff']:+.1f} points "
-                         f"[{d['diff_ci'][0]:+.1f}, {d['diff_ci'][1]:+.1f}], {_sig(d['p'])}")
+            lines.append(f"    {metric} fine-tuned - committed: {_points(d)}, {_sig(d['p'])}")
     ir, rr = tests["IR kabsch: finetuned - committed"], tests["RR kabsch: finetuned - committed"]
     up = ir["diff"] > 0 and rr["diff"] > 0
     sig = [name for name, d in (("IR", ir), ("RR", rr)) if d["p"] < 0.05]
@@ -155,8 +154,7 @@ def table6() -> list[str]:
                      f"RR {_ci(k['RR'])} (Kabsch), {_ci(p['RR'])} (PnP)")
     for other in ("freereg", "freereg_d"):
         d = tests[f"IR: standin - {other}"]
-        lines.append(f"  IR stand-in - {res[other + ' kabsch']['label']}: {d['diff']:+.1f} points "
-                     f"[{d['diff_ci'][0]:+.1f}, {d['diff_ci'][1]:+.1f}], {_sig(d['p'])}")
+        lines.append(f"  IR stand-in - {res[other + ' kabsch']['label']}: {_points(d)}, {_sig(d['p'])}")
     verdict, d, ratio, paper_ratio = _table6_verdict(r)
     lines.append(f"  Verdict, an RGB-trained backbone on the depth map as an image is well below FreeReg in IR: "
                  f"{verdict}: stand-in - FreeReg {d['diff']:+.1f} points, the stand-in at {100 * ratio:.0f} % of "
