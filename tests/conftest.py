@@ -30,7 +30,6 @@ DURATIONS = Path(__file__).resolve().parent / "durations.json"
 
 
 def unit_of(nodeid: str) -> str:
-    nodeid = nodeid.split("@", 1)[0]
     return nodeid if any(key in nodeid for key in ALONE) else nodeid.split("::", 1)[0]
 
 

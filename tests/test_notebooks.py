@@ -14,6 +14,7 @@ The default-parameter runs are ``pytest --nbmake notebooks/`` (see the Makefile)
 """
 from __future__ import annotations
 
+import copy
 import math
 import os
 import re
@@ -196,8 +197,6 @@ def test_notebook_runs_with_other_parameters(run, tmp_path):
 
 def _check_prose(nb, stem: str) -> None:
     """The executed copy's prose agrees with its outputs; in notebook 00 planted faults are caught."""
-    import copy
-
     from freereg_lib.report.prose import check_notebook, glue_references, glued_names
 
     problems = check_notebook(nb, stem)
