@@ -328,9 +328,9 @@ class DiffusionFeatures:
         maps = self.depth_batch([depth])[0]
         return [maps[i] for i in range(N_LAYERS)]
 
-    def _noised_latents(self, images, noise_tag: str):
-        """VAE posterior samples of ``images`` forward-noised to the feature timestep, with the
-        seeded draws of ``noise_tag``; ``(latents, timestep)``."""
+    def _noised_latents(self, images, noise_tag: str, t_hat: int | None = None):
+        """VAE posterior samples of ``images`` forward-noised to the feature timestep of ``t_hat``
+        (default ``cfg.t_hat``), with the seeded draws of ``noise_tag``; ``(latents, timestep)``."""
         import torch
 
         cfg = self.cfg
@@ -341,19 +341,21 @@ class DiffusionFeatures:
         z = post.mean + post.std * self._randn(one, g)
         z = z * self.vae.config.scaling_factor
         noise = self._randn(one, g).expand_as(z)
-        t = self._timestep(feature_timestep(cfg.t_hat, cfg.ddim_steps))
+        t = self._timestep(feature_timestep(cfg.t_hat if t_hat is None else t_hat, cfg.ddim_steps))
         return self.scheduler.add_noise(z, noise, t.cpu()).to(self.dtype), t
 
     @on_cpu_threads
-    def rgb_batch(self, images, layers=None, noise_tag: str = "rgb-latent") -> list[dict[int, np.ndarray]]:
+    def rgb_batch(self, images, layers=None, noise_tag: str = "rgb-latent",
+                  t_hat: int | None = None) -> list[dict[int, np.ndarray]]:
         """Decoder ``layers`` (all nine when None) of RGB images ``(H, W, 3) uint8``, one VAE
         and one UNet call for the whole list; ``{layer: (C, h, w) float32}`` per image.
-        ``noise_tag`` names the seeded noise draws (a diagnostic gives a second image its own)."""
+        ``noise_tag`` names the seeded noise draws (a diagnostic gives a second image its own);
+        ``t_hat`` replaces ``cfg.t_hat``."""
         import torch
 
         cond, _ = self.text_embeddings()
         with torch.inference_mode():
-            zt, t = self._noised_latents(images, noise_tag)
+            zt, t = self._noised_latents(images, noise_tag, t_hat)
             return run_tapped(self.unet, zt, t, layers=layers, encoder_hidden_states=cond.repeat(len(images), 1, 1),
                               return_dict=False)
 
@@ -376,9 +378,11 @@ class DiffusionFeatures:
                               down_block_additional_residuals=down, mid_block_additional_residual=mid,
                               return_dict=False)
 
-    def _sample(self, hint, cond, uncond, n_steps: int, seed: int):
+    def _sample(self, hint, cond, uncond, n_steps: int, seed: int, stops=()):
         """The first ``n_steps`` guided DDIM steps from seeded Gaussian noise, every item of the
-        batch on the draws a single call makes; the latent after them."""
+        batch on the draws a single call makes; the latent after them, or with ``stops`` a dict
+        of the latents after each of those step counts (a shorter run is a prefix of this one:
+        the same start and the same step noise in the same order)."""
         import torch
 
         cfg = self.cfg
@@ -387,10 +391,11 @@ class DiffusionFeatures:
         sched = make_ddim_scheduler()
         sched.set_timesteps(cfg.ddim_steps)
         z = self._randn(one, g).repeat(len(hint), 1, 1, 1)
+        kept = {0: z} if 0 in stops else {}
         # Every step's noise drawn up front, in the order the steps use it, and the
         # timesteps made once: one host-to-device copy each instead of one per step.
-        step_noise = torch.cat([torch.randn(one, generator=g, dtype=torch.float32) for _ in range(n_steps)])
-        step_noise = step_noise.to(self.device, self.dtype)
+        draws = [torch.randn(one, generator=g, dtype=torch.float32) for _ in range(n_steps)]
+        step_noise = torch.cat(draws or [torch.empty((0,) + one[1:])]).to(self.device, self.dtype)  # none above t_hat 975
         timesteps = sched.timesteps[:n_steps].to(self.device)
         for i, t in enumerate(sched.timesteps[:n_steps].tolist()):
             tt = timesteps[i:i + 1]
@@ -403,7 +408,9 @@ class DiffusionFeatures:
             e = guidance(e_c, e_u, cfg.guidance_w)
             z = sched.step(e, t, z, eta=cfg.ddim_eta,
                            variance_noise=step_noise[i:i + 1].expand_as(z)).prev_sample.to(self.dtype)
-        return z
+            if i + 1 in stops:
+                kept[i + 1] = z
+        return kept if stops else z
 
     def _hints_and_texts(self, depths):
         import torch
@@ -416,22 +423,28 @@ class DiffusionFeatures:
     def depth_batch(self, depths, layers=None) -> list[dict[int, np.ndarray]]:
         """Decoder ``layers`` (all nine when None) of depth maps ``(H, W)`` (metres, 0 = none),
         the DDIM steps of the whole list batched; ``{layer: (C, h, w) float32}`` per map."""
+        return self.depth_batch_over_t_hats(depths, [self.cfg.t_hat], layers)[self.cfg.t_hat]
+
+    @on_cpu_threads
+    def depth_batch_over_t_hats(self, depths, t_hats, layers=None) -> dict[int, list[dict[int, np.ndarray]]]:
+        """:meth:`depth_batch` at each of ``t_hats`` from ONE DDIM trajectory (Table 3's sweep):
+        each t_hat's feature pass reads the latent after its own number of steps, so its maps
+        are those of a model built with ``cfg.t_hat`` = that t_hat; ``{t_hat: maps}``."""
         import torch
 
-        cfg = self.cfg
+        steps = {int(t): n_guided_steps(int(t), self.cfg.ddim_steps) for t in t_hats}
         hint, cond, uncond = self._hints_and_texts(depths)
         with torch.inference_mode():
-            z = self._sample(hint, cond, uncond, n_guided_steps(cfg.t_hat, cfg.ddim_steps), cfg.seed)
-            tt = self._timestep(feature_timestep(cfg.t_hat, cfg.ddim_steps))
-            down, mid = self.controlnet(
-                z, tt, encoder_hidden_states=cond, controlnet_cond=hint,
-                conditioning_scale=self.cfg.controlnet_scale, return_dict=False,
-            )
-            return run_tapped(
-                self.unet, z, tt, layers=layers, encoder_hidden_states=cond,
-                down_block_additional_residuals=down, mid_block_additional_residual=mid,
-                return_dict=False,
-            )
+            z = self._sample(hint, cond, uncond, max(steps.values()), self.cfg.seed, stops=set(steps.values()))
+            out = {}
+            for t, n in steps.items():
+                tt = self._timestep(feature_timestep(t, self.cfg.ddim_steps))
+                down, mid = self.controlnet(z[n], tt, encoder_hidden_states=cond, controlnet_cond=hint,
+                                            conditioning_scale=self.cfg.controlnet_scale, return_dict=False)
+                out[t] = run_tapped(self.unet, z[n], tt, layers=layers, encoder_hidden_states=cond,
+                                    down_block_additional_residuals=down, mid_block_additional_residual=mid,
+                                    return_dict=False)
+            return out
 
     @on_cpu_threads
     def generate(self, depth: np.ndarray, seeds=(0,)) -> list[np.ndarray]:

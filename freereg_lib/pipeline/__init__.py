@@ -23,6 +23,7 @@ from freereg_lib.pipeline.steps import (
                                         descriptors,
                                         diffusion_maps,
                                         diffusion_maps_batch,
+                                        diffusion_maps_over_t_hats,
                                         evaluate,
                                         evaluation_truth,
                                         match,
@@ -37,5 +38,5 @@ from freereg_lib.pipeline.steps import (
 
 __all__ = ["DEFAULT_VARIANTS", "METHODS", "ROW_COLUMNS", "DepthView", "Matches", "PairFeatures", "compute_features",
            "compute_features_batch", "correct_matches", "depth_view", "descriptors", "diffusion_maps",
-           "diffusion_maps_batch", "evaluate", "evaluation_truth", "match", "rows_frame", "run_pair", "run_pairs",
+           "diffusion_maps_batch", "diffusion_maps_over_t_hats", "evaluate", "evaluation_truth", "match", "rows_frame", "run_pair", "run_pairs",
            "scene_hints", "solve", "summarize", "variant_rows"]

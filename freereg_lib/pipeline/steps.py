@@ -172,6 +172,19 @@ def diffusion_maps_batch(pairs: list[Pair], views: list[DepthView], backend,
     return list(zip(rgb, dep))
 
 
+def diffusion_maps_over_t_hats(pairs: list[Pair], views: list[DepthView], backend, t_hats,
+                               layers=None) -> dict[int, list[tuple[dict, dict]]]:
+    """:func:`diffusion_maps_batch` at each of ``t_hats`` (Table 3), ``{t_hat: maps}``: each
+    t_hat's maps are those of the backend built with ``cfg.t_hat`` = t_hat, the torch backends'
+    depth sides read from one DDIM trajectory. The stub has no diffusion time: the same maps."""
+    diffusion = getattr(backend, "diffusion", None)
+    if diffusion is None:
+        maps = diffusion_maps_batch(pairs, views, backend, layers)
+        return {int(t): maps for t in t_hats}
+    dep = diffusion.depth_batch_over_t_hats([v.hint_depth for v in views], t_hats, layers)
+    return {t: list(zip(diffusion.rgb_batch([p.image for p in pairs], layers, t_hat=t), dep[t])) for t in dep}
+
+
 @dataclass
 class PairFeatures:
     """Keypoints and their features on both sides of a pair.

@@ -98,12 +98,13 @@ def recoloured(pair):
                                appearance_seed=appearance_seed(seed))
 
 
-def depth_side_maps(pair, view, frame_view, backend, layers) -> tuple[dict, dict[str, dict]]:
+def depth_side_maps(pair, view, frame_view, backend, layers, maps=None) -> tuple[dict, dict[str, dict]]:
     """The image side's decoder maps and the depth side's under each of :data:`VARIANTS`,
     ``{layer: (C, h, w) float32}``; ``view`` is the pipeline's depth view of ``pair``,
     ``frame_view`` the one made from its full depth frame (:func:`frame_view`);
     ``pair.meta`` must hold the true depth-camera image and its re-coloured version
-    (:func:`with_depth_camera_image`)."""
+    (:func:`with_depth_camera_image`). ``maps``: the pipeline's own ``(image, depth)`` maps of
+    the pair when the caller has them (they are FreeReg-D's; not computed again)."""
     from freereg_lib import pipeline
 
     image_b = pair.meta.get("depth_camera_image")
@@ -112,7 +113,7 @@ def depth_side_maps(pair, view, frame_view, backend, layers) -> tuple[dict, dict
         raise ValueError(f"pair {pair.name} holds no depth-camera image and its re-coloured version; make it "
                          "with freereg_lib.training.diagnose.with_depth_camera_image")
     D = backend.diffusion
-    maps_image, maps_depth = pipeline.diffusion_maps_batch([pair], [view], backend, layers)[0]
+    maps_image, maps_depth = maps or pipeline.diffusion_maps_batch([pair], [view], backend, layers)[0]
     return maps_image, {
         "freereg_d": maps_depth,
         "hint_from_frame": D.depth_batch([frame_view.dense], layers)[0],
@@ -135,13 +136,14 @@ def frame_view(pair, cfg):
     return pipeline.depth_view(dataclasses.replace(pair, sensor_depth=pair.depth_frame_gt), cfg)
 
 
-def pair_inlier_ratios(pair, backend, cfg) -> dict[str, float]:
-    """FreeReg-D's IR (fraction) on ``pair`` under each of :data:`VARIANTS`."""
+def pair_inlier_ratios(pair, backend, cfg, maps=None) -> dict[str, float]:
+    """FreeReg-D's IR (fraction) on ``pair`` under each of :data:`VARIANTS` (``maps``: see
+    :func:`depth_side_maps`)."""
     from freereg_lib import pipeline
     from freereg_lib.geometry import metrics
 
     view = pipeline.depth_view(pair, cfg)
-    maps_image, depth_maps = depth_side_maps(pair, view, frame_view(pair, cfg), backend, cfg.layers)
+    maps_image, depth_maps = depth_side_maps(pair, view, frame_view(pair, cfg), backend, cfg.layers, maps)
     mono = backend.mono_depth(pair.image, depth_gt=pair.depth_gt)  # only lifts the image side
     out = {}
     for name, maps_depth in depth_maps.items():
