@@ -1,4 +1,4 @@
-"""The same seed gives the same bytes: ``pairs.csv`` of three runs in separate processes, on a
+"""The same seed gives the same bytes: ``pairs.csv`` of two runs in separate processes, on a
 synthetic pair and an ICL pair, with the default 50k-iteration solvers (the official Kabsch-RANSAC
 samples from a seeded NumPy generator; OpenCV's PnP-RANSAC seeds itself the same way each call)."""
 import subprocess
@@ -25,7 +25,8 @@ _RUN = textwrap.dedent("""
 
 
 def test_pairs_csv_is_byte_identical_across_processes(tmp_path, scoring="official"):
-    outs = [tmp_path / f"pairs{k}.csv" for k in range(3)]
+    # Two independent processes are what the claim needs; a third run repeated the same comparison.
+    outs = [tmp_path / f"pairs{k}.csv" for k in range(2)]
     procs = [subprocess.Popen([sys.executable, "-c", _RUN, scoring, str(o)], stderr=subprocess.PIPE, text=True)
              for o in outs]
     for p in procs:
