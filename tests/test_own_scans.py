@@ -11,7 +11,9 @@ as many as the demo setting it always used before; its REGISTERED verdicts are r
 Measured when written (stub with the true depth, FreeReg-G, Kabsch, 2,000 iterations, half-size
 frames): sensor-frame clouds 3 of 3 with the 3DMatch setting (RE 1.5-2.8 deg), 1 of 3 with the
 demo setting (0-40 FAILED at 20 inliers, 150-190 at 93 deg); merged world-frame clouds 3 of 3
-(RE 0.6-2.2 deg) against 1 of 3 with the demo setting.
+(RE 0.6-2.2 deg) against 1 of 3 with the demo setting. The test runs the two pairs of the three
+that the demo setting fails in both cases (0-40, 150-190): 50-90, which every setting
+registers, told nothing the others do not and cost a third of the time.
 """
 from __future__ import annotations
 
@@ -34,7 +36,7 @@ from freereg_lib.report import pair_files as PF
 
 ITERS = 2000
 FACTOR = 0.5  # half-size frames: 320 x 240
-PAIRS = [(0, 40), (50, 90), (150, 190)]
+PAIRS = [(0, 40), (150, 190)]
 
 
 def _small(depth: np.ndarray, K: np.ndarray):
