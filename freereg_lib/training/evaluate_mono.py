@@ -39,7 +39,6 @@ pairs), median RE / TE, and paired permutation tests of each mono-modality row a
 """
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import time
@@ -49,7 +48,7 @@ from pathlib import Path
 import numpy as np
 
 from freereg_lib.training.evaluate_split import (
-    _done, _plain, _stat, difference_line, load_average_range, paired_difference, publish, rows_to_summarize, stamped,
+    _done, _plain, _stat, load_average_range, paired_difference, result_lines, split_command,
 )
 from freereg_lib.training.splits import SPLITS
 
@@ -273,37 +272,11 @@ def summarize(recs: list[dict], split_name: str) -> dict:
 def report(res: dict) -> str:
     lines = [f"Table 10 on the {res['split']} split: {res['n_pairs']} synthetic indoor pairs ({res['pair_seeds']}), "
              f"{res['backend']}", "  modality solver   FMR    IR     IN      RR  [95 % interval]"]
-    for key, r in res["results"].items():
-        lines.append(f"  {key:15s} {r['FMR']['mean']:5.1f}  {r['IR']['mean']:5.1f}  {r['IN']:6.1f}  {r['RR']['mean']:5.1f} "
-                     f"[{r['RR']['ci'][0]:.1f}, {r['RR']['ci'][1]:.1f}]  ({r['errors']} failed)")
-    for key, t in res["tests"].items():
-        lines.append(difference_line(key, t))
-    lines.append(f"  seconds a pair (median): {res['seconds_per_pair']}")
-    return "\n".join(lines)
+    return "\n".join(lines + result_lines(res, 15))
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--split", default="test", choices=sorted(SPLITS))
-    p.add_argument("--pairs", type=int, default=None, help="default: the split's size")
-    p.add_argument("--backend", default="micro", choices=("micro", "stub"))
-    p.add_argument("--rows", required=True, help="per-pair rows (JSON lines), appended to or summarized")
-    p.add_argument("--summarize", action="store_true")
-    p.add_argument("--out", default=None)
-    args = p.parse_args(argv)
-    if args.pairs is not None and args.pairs < 1:
-        p.error(f"--pairs must be >= 1, got {args.pairs}")
-    if not args.summarize:
-        run(args.split, args.pairs or SPLITS[args.split].n_pairs, Path(args.rows), args.backend)
-        return 0
-    recs = rows_to_summarize(p, args.rows)
-    res = summarize(recs, args.split)
-    res["commands"] = [f"python -m freereg_lib.training.evaluate_mono --split {args.split} --pairs {len(recs)} "
-                       f"--rows {args.rows}",
-                       f"python -m freereg_lib.training.evaluate_mono --split {args.split} --summarize --rows "
-                       f"{args.rows}" + (f" --out {args.out}" if args.out else "")]
-    publish(stamped(res), report(res), args.out)
-    return 0
+    return split_command("freereg_lib.training.evaluate_mono", __doc__, run, summarize, report, argv)
 
 
 if __name__ == "__main__":

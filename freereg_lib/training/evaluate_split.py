@@ -270,6 +270,46 @@ def publish(res: dict, report_text: str, out: str | None) -> None:
         Path(out).write_text(json.dumps(res, indent=1) + "\n")
 
 
+def result_lines(res: dict, width: int) -> list[str]:
+    """A split summary's report lines after its header: per row FMR, IR, IN and RR with its
+    interval and failures (row names padded to ``width``), the paired differences, the median
+    seconds a pair."""
+    lines = []
+    for key, r in res["results"].items():
+        lines.append(f"  {key:{width}s} {r['FMR']['mean']:5.1f}  {r['IR']['mean']:5.1f}  {r['IN']:6.1f}  {r['RR']['mean']:5.1f} "
+                     f"[{r['RR']['ci'][0]:.1f}, {r['RR']['ci'][1]:.1f}]  ({r['errors']} failed)")
+    lines += [difference_line(key, t) for key, t in res["tests"].items()]
+    lines.append(f"  seconds a pair (median): {res['seconds_per_pair']}")
+    return lines
+
+
+def split_command(module: str, doc: str, run, summarize, report, argv=None) -> int:
+    """The command line of a split evaluation on one rows file: ``--split --pairs --backend --rows``
+    appends the rows of the pairs not yet there (``run(split, n_pairs, rows_path, backend)``);
+    ``--summarize [--out]`` prints ``report`` of ``summarize(rows, split)`` and writes it stamped,
+    with the two commands of ``python -m module`` that made it."""
+    p = argparse.ArgumentParser(description=doc.split("\n")[0])
+    p.add_argument("--split", default="test", choices=sorted(SPLITS))
+    p.add_argument("--pairs", type=int, default=None, help="default: the split's size")
+    p.add_argument("--backend", default="micro", choices=("micro", "stub"))
+    p.add_argument("--rows", required=True, help="per-pair rows (JSON lines), appended to or summarized")
+    p.add_argument("--summarize", action="store_true")
+    p.add_argument("--out", default=None)
+    args = p.parse_args(argv)
+    if args.pairs is not None and args.pairs < 1:
+        p.error(f"--pairs must be >= 1, got {args.pairs}")
+    if not args.summarize:
+        run(args.split, args.pairs or SPLITS[args.split].n_pairs, Path(args.rows), args.backend)
+        return 0
+    recs = rows_to_summarize(p, args.rows)
+    res = summarize(recs, args.split)
+    res["commands"] = [f"python -m {module} --split {args.split} --pairs {len(recs)} --rows {args.rows}",
+                       f"python -m {module} --split {args.split} --summarize --rows {args.rows}"
+                       + (f" --out {args.out}" if args.out else "")]
+    publish(stamped(res), report(res), args.out)
+    return 0
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--split", default="test", choices=sorted(SPLITS))
