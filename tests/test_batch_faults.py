@@ -7,6 +7,7 @@ or kernels killed at any point. The jobs execute ``tests/fixtures/batch_fixture.
 import errno
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -133,19 +134,30 @@ def test_a_read_only_or_full_runs_folder_ends_with_one_line(tmp_path, capsys, mo
 # --------------------------------------------------------------------------------------
 # merge verifies pairs.csv against done.json.
 
-def _one_finished_job(tmp_path, name="m"):
-    grid = _grid(tmp_path, name=name, base={"n_pairs": 4, "seed": 2})
-    assert batch.main(["run", str(grid), "--runs-dir", str(tmp_path / "runs")]) == 0
+@pytest.fixture(scope="module")
+def finished_job(tmp_path_factory):
+    """A folder with a grid of one job and its finished run (``grid.yaml``, ``runs/``), run once
+    for the module; each test gets its own copy (:func:`_one_finished_job`)."""
+    folder = tmp_path_factory.mktemp("finished")
+    grid = _grid(folder, name="m", base={"n_pairs": 4, "seed": 2})
+    assert batch.main(["run", str(grid), "--runs-dir", str(folder / "runs")]) == 0
+    return folder
+
+
+def _one_finished_job(tmp_path, finished_job, name="m"):
+    shutil.copytree(finished_job, tmp_path, dirs_exist_ok=True)
+    grid = tmp_path / "grid.yaml"
     job = batch.load_grid(grid).jobs[0]
     unit = tmp_path / "runs" / name / job.id
     done = json.loads((unit / "done.json").read_text())
     assert done["rows"] == 16 and len(done["pairs_sha256"]) == 64
     assert done["library"] == batch.library_fingerprint() and done["config"]["tau_c"] == 0.3
+    assert batch.is_done(unit, job, "0/1")  # the copy is a finished job, as the run left it
     return grid, job, unit
 
 
-def test_merge_refuses_a_truncated_pairs_csv(tmp_path, capsys):
-    grid, job, unit = _one_finished_job(tmp_path)
+def test_merge_refuses_a_truncated_pairs_csv(tmp_path, capsys, finished_job):
+    grid, job, unit = _one_finished_job(tmp_path, finished_job)
     lines = (unit / "out" / "pairs.csv").read_text().splitlines(keepends=True)
     (unit / "out" / "pairs.csv").write_text("".join(lines[:-4]))  # whole rows lost: 12 of 16
     assert batch.main(["merge", str(grid), "--runs-dir", str(tmp_path / "runs")]) == 1
@@ -158,8 +170,8 @@ def test_merge_refuses_a_truncated_pairs_csv(tmp_path, capsys):
     assert (pd.read_csv(tmp_path / "runs" / "m" / "results.csv")["n_pairs"] == 4).all()
 
 
-def test_merge_refuses_a_cut_row_without_a_traceback(tmp_path, capsys):
-    grid, job, unit = _one_finished_job(tmp_path)
+def test_merge_refuses_a_cut_row_without_a_traceback(tmp_path, capsys, finished_job):
+    grid, job, unit = _one_finished_job(tmp_path, finished_job)
     text = (unit / "out" / "pairs.csv").read_text()
     (unit / "out" / "pairs.csv").write_text(text[: len(text) - 40])  # the last row cut mid-way
     assert batch.main(["merge", str(grid), "--runs-dir", str(tmp_path / "runs")]) == 1
@@ -169,8 +181,8 @@ def test_merge_refuses_a_cut_row_without_a_traceback(tmp_path, capsys):
         batch.read_rows(unit / "out")
 
 
-def test_a_job_of_another_library_is_flagged_by_merge_and_rerun_by_run(tmp_path, capsys):
-    grid, job, unit = _one_finished_job(tmp_path)
+def test_a_job_of_another_library_is_flagged_by_merge_and_rerun_by_run(tmp_path, capsys, finished_job):
+    grid, job, unit = _one_finished_job(tmp_path, finished_job)
     done = json.loads((unit / "done.json").read_text())
     (unit / "done.json").write_text(json.dumps({**done, "library": "0.0.1+000000000000"}))
     assert batch.main(["merge", str(grid), "--runs-dir", str(tmp_path / "runs")]) == 0
@@ -218,7 +230,7 @@ def _alive(pid: int) -> bool:
 def test_killing_the_run_or_a_kernel_then_rerunning_gives_the_uninterrupted_table(tmp_path):
     hold, pids = tmp_path / "hold.txt", tmp_path / "pids.txt"
     grid = _grid(tmp_path, name="k", base={"n_pairs": 3, "hold_file": str(hold), "pid_file": str(pids)},
-                 grid={"seed": [0, 1, 2]})
+                 grid={"seed": [0, 1]})
     jobs = batch.load_grid(grid).jobs
     assert batch.main(["run", str(grid), "--runs-dir", str(tmp_path / "whole")]) == 0
     whole = pd.read_csv(tmp_path / "whole" / "k" / "results.csv")
@@ -236,17 +248,20 @@ def test_killing_the_run_or_a_kernel_then_rerunning_gives_the_uninterrupted_tabl
     _wait_for(lambda: not _alive(kernel), "the orphaned kernel to end", timeout=60)  # ipykernel: ~2 s
     assert not (runs / "k" / jobs[1].id / "done.json").exists()
 
-    # 2. The third job's kernel killed mid-job: the job fails, the run goes on.
-    hold.write_text("seed=2,scale=1.0\n")
+    # 2. Run again: the finished job is skipped, and the unfinished one's kernel killed mid-job:
+    # the job fails, the run ends with status 1.
+    hold.write_text("seed=1,scale=1.0\n")
     proc = _start(grid, runs)
-    kernel = _wait_for(lambda: _pid_of(pids, "seed=2,scale=1.0"), "the third job's kernel")
+    kernel = _wait_for(lambda: _pid_of(pids, "seed=1,scale=1.0") != kernel and _pid_of(pids, "seed=1,scale=1.0"),
+                       "the second job's kernel again")
     os.kill(kernel, signal.SIGKILL)
     assert proc.wait(timeout=120) == 1
     hold.unlink()
-    assert (runs / "k" / jobs[2].id / "error.txt").is_file()
-    assert not (runs / "k" / jobs[2].id / "done.json").exists()
+    assert (runs / "k" / jobs[1].id / "error.txt").is_file()
+    assert not (runs / "k" / jobs[1].id / "done.json").exists()
+    assert [line.split()[0] for line in pids.read_text().splitlines()] == ["seed=0,scale=1.0"] + ["seed=1,scale=1.0"] * 2
 
     # 3. Re-run: only the unfinished job runs, and the table is the uninterrupted one.
     report = batch.run(grid, runs_dir=runs)
-    assert report.ok and report.finished == [jobs[2].id] and len(report.skipped) == 2
+    assert report.ok and report.finished == [jobs[1].id] and len(report.skipped) == 1
     pd.testing.assert_frame_equal(pd.read_csv(runs / "k" / "results.csv"), whole)
