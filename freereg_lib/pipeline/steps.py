@@ -12,7 +12,7 @@ import math
 import traceback
 from dataclasses import dataclass
 from itertools import islice
-from typing import Iterable
+from typing import Callable, Iterable
 
 import numpy as np
 import pandas as pd
@@ -440,12 +440,14 @@ def run_pair(
     the way the paper's RR counts a failure.
     """
     variants = list(variants)
-    diffusion, geometric = _kinds_needed(variants, cfg)
+    return variant_rows(pair, _features_or_error(pair, backend, cfg, *_kinds_needed(variants, cfg)), cfg, variants)
+
+
+def _features_or_error(pair: Pair, backend, cfg: FreeRegConfig, diffusion: bool, geometric: bool):
     try:
-        feats = compute_features(pair, backend, cfg, diffusion, geometric)
+        return compute_features(pair, backend, cfg, diffusion, geometric)
     except Exception as exc:  # recorded per pair so a batch goes on
-        feats = exc
-    return variant_rows(pair, feats, cfg, variants)
+        return exc
 
 
 def _kinds_needed(variants: list[tuple[str, str]], cfg: FreeRegConfig) -> tuple[bool, bool]:
@@ -509,15 +511,17 @@ def _row(pair, method, solver, w, n_matches, res, error, scores=None) -> dict:
 
 
 def run_pairs(pairs: Iterable[Pair], backend, cfg: FreeRegConfig, variants=DEFAULT_VARIANTS,
-              progress: bool = True) -> list[dict]:
+              progress: bool = True,
+              on_pair: Callable[[Pair, PairFeatures | Exception, list[dict]], None] | None = None) -> list[dict]:
     """``run_pair`` over ``pairs`` with a progress bar; returns all rows.
 
     With ``cfg.pair_batch = B > 1`` the diffusion models run on ``B`` pairs at a time
     (:func:`compute_features_batch`): the same rows up to float rounding, fewer and larger
     model calls (a GPU speed-up; on a CPU it gains little and costs memory).
+    ``on_pair(pair, features, rows)`` is called after each pair (``features`` the exception
+    that stopped their extraction, if one did), e.g. to keep a failed pair's features for a
+    picture instead of computing them again.
     """
-
-
     variants = list(variants)
     batch = int(cfg.pair_batch)
     if batch < 1:
@@ -527,11 +531,13 @@ def run_pairs(pairs: Iterable[Pair], backend, cfg: FreeRegConfig, variants=DEFAU
     it = iter(pairs)
     with tqdm(total=len(pairs) if hasattr(pairs, "__len__") else None, desc="pairs", disable=not progress) as bar:
         while chunk := list(islice(it, batch)):
-            if len(chunk) == 1:
-                rows.extend(run_pair(chunk[0], backend, cfg, variants))
-            else:
-                for pair, feats in zip(chunk, compute_features_batch(chunk, backend, cfg, diffusion, geometric)):
-                    rows.extend(variant_rows(pair, feats, cfg, variants))
+            feats_of_chunk = ([_features_or_error(chunk[0], backend, cfg, diffusion, geometric)] if len(chunk) == 1
+                              else compute_features_batch(chunk, backend, cfg, diffusion, geometric))
+            for pair, feats in zip(chunk, feats_of_chunk):
+                pair_rows = variant_rows(pair, feats, cfg, variants)
+                rows.extend(pair_rows)
+                if on_pair is not None:
+                    on_pair(pair, feats, pair_rows)
             bar.update(len(chunk))
     return rows
 
