@@ -13,11 +13,12 @@ from freereg_lib.models.micro import diffusion as M  # noqa: E402
 from freereg_lib.training import train_diffusion as T  # noqa: E402
 
 
-def _views(n: int = 8, seed: int = 0, hw=(64, 64)) -> dict:
-    """Smooth, structured stand-in views, smaller than the real 128 x 192 ones to keep the test
-    quick (every model is convolutional)."""
+def _views(n: int = 8, seed: int = 0, hw=(32, 32)) -> dict:
+    """Smooth, structured stand-in views, much smaller than the real 128 x 192 ones to keep the
+    test quick (every model is convolutional; 32 x 32 is an 8 x 8 latent, 1 x 1 at the UNet's
+    bottom)."""
     rng = np.random.default_rng(seed)
-    yy, xx = np.mgrid[0:hw[0], 0:hw[1]] / 32.0
+    yy, xx = np.mgrid[0:hw[0], 0:hw[1]] / 16.0
     rgb, hint = [], []
     for _ in range(n):
         f = rng.uniform(0.5, 2.0, 3)
@@ -27,12 +28,28 @@ def _views(n: int = 8, seed: int = 0, hw=(64, 64)) -> dict:
     return {"rgb": np.stack(rgb), "hint": np.stack(hint), "depth": np.zeros((n, 120, 160), np.float32)}
 
 
+def _views_args(folder) -> list[str]:
+    np.savez(folder / "views.npz", n_scenes=2, views_per_scene=4, **_views())
+    return ["--views", str(folder / "views.npz"), "--scenes", "2", "--views-per-scene", "4", "--threads", "1"]
+
+
 @pytest.fixture
 def views_args(tmp_path) -> list[str]:
     """The arguments every train_diffusion run of these tests shares: :func:`_views` saved as a
     two-scene views file, and one thread."""
-    np.savez(tmp_path / "views.npz", n_scenes=2, views_per_scene=4, **_views())
-    return ["--views", str(tmp_path / "views.npz"), "--scenes", "2", "--views-per-scene", "4", "--threads", "1"]
+    return _views_args(tmp_path)
+
+
+@pytest.fixture(scope="module")
+def first_export(tmp_path_factory):
+    """One run of all three stages, two steps each (a checkpoint every two steps, one warm-up
+    step), exported: the weights folder that the continued and restarted runs start from, and
+    that run's ``training.json``. Run once for the module; the tests only read it."""
+    tmp = tmp_path_factory.mktemp("first")
+    T.main(_views_args(tmp) + ["--batch", "2", "--checkpoint-every", "2", "--warmup", "1", "--out", str(tmp / "a"),
+                               "--steps-vae", "2", "--steps-unet", "2", "--steps-controlnet", "2",
+                               "--export", str(tmp / "w")])
+    return tmp / "w", json.loads((tmp / "w/training.json").read_text())
 
 
 def _fit(module, loss_fn, steps: int, lr: float) -> list[float]:
@@ -68,7 +85,7 @@ def test_each_stage_lowers_its_loss_on_a_fixed_batch():
 
     T.freeze(models["vae"])
     latents = T.encode_latents(models["vae"], data.rgb)
-    assert latents[0].shape == (2, 8, 4, 16, 16)  # plain and mirrored, a quarter-size latent
+    assert latents[0].shape == (2, 8, 4, 8, 8)  # plain and mirrored, a quarter-size latent
     T.set_scaling_factor(models["vae"], *latents)
     den = T.Denoising(models, data, latents, args)
     no_drop = np.zeros(2, dtype=bool)
@@ -125,13 +142,12 @@ def test_export_needs_every_stage(tmp_path, views_args):
                              "--export", str(tmp_path / "w")])
 
 
-def test_init_from_continues_one_stage_and_keeps_the_others(tmp_path, views_args):
+def test_init_from_continues_one_stage_and_keeps_the_others(tmp_path, views_args, first_export):
+    w, first = first_export
+    first = first["stages"]
     common = views_args + ["--batch", "2", "--checkpoint-every", "2", "--warmup", "1"]
-    T.main(common + ["--out", str(tmp_path / "a"), "--steps-vae", "2", "--steps-unet", "2",
-                     "--steps-controlnet", "2", "--export", str(tmp_path / "w")])
-    T.main(common + ["--out", str(tmp_path / "b"), "--init-from", str(tmp_path / "w"), "--stages", "controlnet",
+    T.main(common + ["--out", str(tmp_path / "b"), "--init-from", str(w), "--stages", "controlnet",
                      "--steps-controlnet", "4", "--export", str(tmp_path / "w2")])
-    first = json.loads((tmp_path / "w/training.json").read_text())["stages"]
     cont = json.loads((tmp_path / "w2/training.json").read_text())["stages"]
     assert cont["vae"] == first["vae"] and cont["unet"] == first["unet"]
     history = json.loads((tmp_path / "w2/training.json").read_text())["history"]
@@ -139,23 +155,21 @@ def test_init_from_continues_one_stage_and_keeps_the_others(tmp_path, views_args
     assert len(cont["controlnet"]["loss"]) == 4 and cont["controlnet"]["steps"] == 4
     assert cont["controlnet"]["loss"][:2] == first["controlnet"]["loss"]
     assert [v[0] for v in cont["controlnet"]["val"]] == [2, 4]
-    a, b = M.load(tmp_path / "w"), M.load(tmp_path / "w2")
+    a, b = M.load(w), M.load(tmp_path / "w2")
     assert a["vae"].config.scaling_factor == b["vae"].config.scaling_factor
     for part in ("vae", "unet"):
-        for (k, v), w in zip(a[part].state_dict().items(), b[part].state_dict().values()):
-            assert torch.equal(v, w), (part, k)
+        for (k, v), u in zip(a[part].state_dict().items(), b[part].state_dict().values()):
+            assert torch.equal(v, u), (part, k)
     moved = [not torch.equal(v, w) for v, w in zip(a["controlnet"].state_dict().values(),
                                                   b["controlnet"].state_dict().values())]
     assert any(moved)
 
 
-def test_restart_controlnet_rebuilds_it_from_the_folders_unet(tmp_path, views_args):
+def test_restart_controlnet_rebuilds_it_from_the_folders_unet(tmp_path, views_args, first_export):
+    w, first = first_export
     common = views_args + ["--batch", "2", "--checkpoint-every", "2", "--warmup", "1"]
-    T.main(common + ["--out", str(tmp_path / "a"), "--steps-vae", "1", "--steps-unet", "1",
-                     "--steps-controlnet", "2", "--export", str(tmp_path / "w")])
-    T.main(common + ["--out", str(tmp_path / "b"), "--init-from", str(tmp_path / "w"), "--stages", "controlnet",
+    T.main(common + ["--out", str(tmp_path / "b"), "--init-from", str(w), "--stages", "controlnet",
                      "--restart-controlnet", "--steps-controlnet", "1", "--export", str(tmp_path / "w2")])
-    first = json.loads((tmp_path / "w/training.json").read_text())
     again = json.loads((tmp_path / "w2/training.json").read_text())
     # Step 0 again, with zero convolutions: the loss is the UNet's on step 0's draws, as in the
     # first run (there the UNet was float32, here its float16 export).
@@ -228,23 +242,21 @@ def test_mixed_precision_changes_the_arithmetic_not_the_draws(tmp_path, views_ar
     assert all(v.dtype == torch.float32 for v in b["model"].values())  # float32 master weights
 
 
-def test_restart_unet_trains_a_fresh_unet_on_the_folders_vae(tmp_path, views_args):
+def test_restart_unet_trains_a_fresh_unet_on_the_folders_vae(tmp_path, views_args, first_export):
+    w, first = first_export
     common = views_args + ["--batch", "2", "--checkpoint-every", "2", "--warmup", "1"]
-    T.main(common + ["--out", str(tmp_path / "a"), "--steps-vae", "1", "--steps-unet", "2",
-                     "--steps-controlnet", "1", "--export", str(tmp_path / "w")])
-    T.main(common + ["--out", str(tmp_path / "b"), "--init-from", str(tmp_path / "w"), "--stages", "unet",
+    T.main(common + ["--out", str(tmp_path / "b"), "--init-from", str(w), "--stages", "unet",
                      "controlnet", "--restart-unet", "--restart-controlnet", "--steps-unet", "1",
                      "--steps-controlnet", "1", "--snr-gamma", "5", "--export", str(tmp_path / "w2")])
-    first = json.loads((tmp_path / "w/training.json").read_text())
     again = json.loads((tmp_path / "w2/training.json").read_text())
     assert len(again["stages"]["unet"]["loss"]) == 1 and again["stages"]["vae"] == first["stages"]["vae"]
     # step 0 of the same seeded UNet on step 0's draws (the folder's VAE in float16 now; SNR weights <= 1)
     assert again["stages"]["unet"]["loss"][0] <= first["stages"]["unet"]["loss"][0] * 1.01
     assert "unet rebuilt (seeded random weights) and trained from step 0 to 1" in again["history"]
     assert "Min-SNR weighted, gamma 5" in again["history"]
-    a, b = M.load(tmp_path / "w"), M.load(tmp_path / "w2")
-    for v, w in zip(a["vae"].state_dict().values(), b["vae"].state_dict().values()):
-        assert torch.equal(v, w)
+    a, b = M.load(w), M.load(tmp_path / "w2")
+    for v, u in zip(a["vae"].state_dict().values(), b["vae"].state_dict().values()):
+        assert torch.equal(v, u)
     with pytest.raises(SystemExit):  # the folder's ControlNet belongs to the old UNet
         T.parse_args(["--init-from", "w", "--restart-unet", "--stages", "unet", "controlnet"])
     with pytest.raises(SystemExit):
