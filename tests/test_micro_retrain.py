@@ -42,24 +42,32 @@ def test_the_schedule_is_the_one_the_committed_weights_record(tmp_path):
 
 
 def test_first_rooms_of_a_render_are_the_smaller_render():
-    small = render_views(2, 2, workers=1, progress=False)
-    cut = R.first_rooms(render_views(3, 2, workers=1, progress=False), 2, views_per_scene=2)
+    small = render_views(1, 2, workers=1, progress=False)
+    larger = render_views(2, 2, workers=1, progress=False)
+    cut = R.first_rooms(larger, 1, views_per_scene=2)
     assert small.keys() == cut.keys()
     for k in small:
         np.testing.assert_array_equal(small[k], cut[k])
-    with pytest.raises(ValueError, match="4 rooms asked for, the render holds 3"):
-        R.first_rooms(render_views(3, 1, workers=1, progress=False), 4, views_per_scene=1)
+    with pytest.raises(ValueError, match="3 rooms asked for, the render holds 2"):
+        R.first_rooms(larger, 3, views_per_scene=2)
 
 
 def test_both_phases_run_in_order_and_the_second_continues_the_first(tmp_path, monkeypatch, capsys):
     tiny = ["--batch", "2", "--warmup", "1", "--checkpoint-every", "2"]
+    # One view a room instead of four (rendering was a third of the test's time), so 5 and 6 rooms
+    # (instead of 2 and 3 with four views): a fifth of the views, at least one, is held out for
+    # the validation losses. (first_rooms's default views_per_scene is bound to the constant
+    # when it is defined.)
+    first_rooms = R.first_rooms
+    monkeypatch.setattr(R, "VIEWS_PER_SCENE", 1)
+    monkeypatch.setattr(R, "first_rooms", lambda views, n_scenes: first_rooms(views, n_scenes, views_per_scene=1))
     monkeypatch.setattr(R, "PHASES", (
-        (2, ["--steps-vae", "2", "--steps-unet", "2", "--steps-controlnet", "0", *tiny]),
-        (3, ["--stages", "unet", "controlnet", "--restart-controlnet", "--steps-unet", "3",
+        (5, ["--steps-vae", "2", "--steps-unet", "2", "--steps-controlnet", "0", *tiny]),
+        (6, ["--stages", "unet", "controlnet", "--restart-controlnet", "--steps-unet", "3",
              "--steps-controlnet", "3", *tiny])))
     assert R.main(["--out", str(tmp_path), "--threads", "1"]) == 0
-    with np.load(tmp_path / "views_indoor_2.npz") as z:
-        assert int(z["n_scenes"]) == 2 and len(z["rgb"]) == 2 * R.VIEWS_PER_SCENE
+    with np.load(tmp_path / "views_indoor_5.npz") as z:
+        assert int(z["n_scenes"]) == 5 and len(z["rgb"]) == 5 * R.VIEWS_PER_SCENE
     first = json.loads((tmp_path / "phase1_weights/training.json").read_text())
     final = json.loads((tmp_path / "weights/training.json").read_text())
     assert final["stages"]["vae"] == first["stages"]["vae"]
