@@ -11,8 +11,6 @@ first code cell with one line naming the parameter.
 from __future__ import annotations
 
 import ast
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -52,14 +50,30 @@ def test_every_parameter_has_a_type_papermill_shows_and_its_default_conforms(pat
         f"{path.name}: the first code cell must set the kernel up and check the parameters first"
 
 
+def _papermill(*args: str):
+    """``papermill ARGS`` run in this process (its command line, without a second interpreter
+    importing papermill again): the exit status and what it printed or raised."""
+    import logging
+
+    from click.testing import CliRunner
+    from papermill.cli import papermill as command
+
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    try:
+        result = CliRunner().invoke(command, list(args), catch_exceptions=True)
+    finally:  # the command's logging.basicConfig, bound to the runner's stream, is undone
+        root.handlers[:], root.level = handlers, level
+    return result.exit_code, result.output + ("" if result.exception is None else repr(result.exception))
+
+
 def test_help_notebook_prints_a_type_for_every_parameter():
-    proc = subprocess.run([sys.executable, "-m", "papermill", "--help-notebook", str(NOTEBOOKS / "04_benchmark.ipynb")],
-                          capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 0, proc.stderr
-    listed = [ln.split(":")[0].strip() for ln in proc.stdout.splitlines() if "(default " in ln]
+    rc, stdout = _papermill("--help-notebook", str(NOTEBOOKS / "04_benchmark.ipynb"))
+    assert rc == 0, stdout
+    listed = [ln.split(":")[0].strip() for ln in stdout.splitlines() if "(default " in ln]
     assert len(listed) >= 15 and "variants" in listed
-    assert "variants: list[list[str]] (default" in proc.stdout and "n_pairs: Optional[int] (default 6)" in proc.stdout
-    assert "(None)" not in proc.stdout and "unknown type" not in proc.stdout
+    assert "variants: list[list[str]] (default" in stdout and "n_pairs: Optional[int] (default 6)" in stdout
+    assert "(None)" not in stdout and "unknown type" not in stdout
 
 
 SPEC = {"backend": "str", "layers": "list[int]", "w": "float", "device": "Optional[str]",
@@ -103,11 +117,10 @@ def test_a_misspelt_injected_name_is_refused_with_a_suggestion():
 
 def _run(stem: str, tmp_path: Path, *args: str) -> tuple[int, str, Path]:
     out = tmp_path / f"{stem}.out.ipynb"
-    proc = subprocess.run([sys.executable, "-m", "papermill", str(NOTEBOOKS / f"{stem}.ipynb"), str(out), "-k", "python3",
-                           "--cwd", str(NOTEBOOKS), "--no-progress-bar", "-p", "out_dir", str(tmp_path / "o"),
-                           "-p", "figures_dir", str(tmp_path / "f"), *args],
-                          capture_output=True, text=True, timeout=300)
-    return proc.returncode, proc.stdout + proc.stderr, out
+    rc, log = _papermill(str(NOTEBOOKS / f"{stem}.ipynb"), str(out), "-k", "python3", "--cwd", str(NOTEBOOKS),
+                         "--no-progress-bar", "-p", "out_dir", str(tmp_path / "o"), "-p", "figures_dir",
+                         str(tmp_path / "f"), *args)
+    return rc, log, out
 
 
 @pytest.mark.parametrize("args, words", [
