@@ -23,8 +23,10 @@ def _check_recovery(pair, rng):
     assert len(keep) > 300
     noisy_pc = _corrupt(pts_pc, rng)
     uv_px = np.rint(uv[keep])
+    # 10k similarity samples, not the paper's 50k: with half the partners outliers, a sample
+    # of 4 is clean once in 16; the poses found are the same as at 50k on these pairs.
     for res in (
-        pose.kabsch_ransac(pts_cam, noisy_pc, inlier_m=0.2, iterations=50_000),
+        pose.kabsch_ransac(pts_cam, noisy_pc, inlier_m=0.2, iterations=10_000),
         pose.kabsch_ransac(pts_cam, noisy_pc, inlier_m=0.2, iterations=5_000, with_scale=False),
         pose.pnp_ransac(uv_px, noisy_pc, pair.K_image, reproj_px=10.0, iterations=50_000),
     ):
@@ -43,7 +45,7 @@ def test_solvers_recover_pose_on_synthetic_with_half_outliers(rng):
     from freereg_lib.data import synthetic
 
     for seed in (0, 1):
-        _check_recovery(synthetic.make_pair("indoor", seed=seed), rng)
+        _check_recovery(synthetic.make_pair("indoor", seed=seed, image_size=(240, 320)), rng)
 
 
 def test_kabsch_with_scale_absorbs_monocular_scale(rng):
@@ -157,10 +159,11 @@ def test_kabsch_scale_guard_prevents_shrink_collapse():
     pts_pc = rng.uniform([-20, -2, 5], [20, 2, 40], size=(400, 3))
     pts_cam = cameras.transform(T, pts_pc)
     pts_pc[:150] = rng.normal(scale=0.7, size=(150, 3)) + [0, 0, 20]
-    unguarded = pose.kabsch_ransac(pts_cam, pts_pc, 4.0, 20_000, scoring="open3d")  # a current Open3D's call
+    # 5k iterations (20k when written): the same three poses, scales 0.131, 1.000, 1.000.
+    unguarded = pose.kabsch_ransac(pts_cam, pts_pc, 4.0, 5_000, scoring="open3d")  # a current Open3D's call
     assert unguarded.scale < 0.2  # the failure mode exists
-    guarded = pose.kabsch_ransac(pts_cam, pts_pc, 4.0, 20_000, scoring="open3d", max_scale_ratio=2.0)
-    official = pose.kabsch_ransac(pts_cam, pts_pc, 4.0, 20_000)  # open3d 0.12's scoring, the default
+    guarded = pose.kabsch_ransac(pts_cam, pts_pc, 4.0, 5_000, scoring="open3d", max_scale_ratio=2.0)
+    official = pose.kabsch_ransac(pts_cam, pts_pc, 4.0, 5_000)  # open3d 0.12's scoring, the default
     for res in (guarded, official):
         assert res.success and abs(res.scale - 1) < 0.01
         re, te = metrics.pose_errors(res.T_cam_pc, T)
@@ -182,7 +185,8 @@ def test_rows_frame_matches_the_rows_pipeline_writes():
     from freereg_lib.models import get_backend
 
     cfg = config_for("synthetic_indoor", ransac_iters=500)
-    rows = pipeline.run_pair(synthetic.make_pair("indoor", seed=4), get_backend("stub", cfg), cfg, [("FreeReg", "pnp")])
+    pair = synthetic.make_pair("indoor", seed=4, image_size=(240, 320))
+    rows = pipeline.run_pair(pair, get_backend("stub", cfg), cfg, [("FreeReg", "pnp")])
     assert list(pipeline.rows_frame(rows).columns) == list(rows[0])
     assert list(pipeline.rows_frame([]).columns) == list(rows[0])
 
