@@ -40,8 +40,9 @@ VARIANTS = (("FreeReg", "kabsch"), ("FreeReg", "pnp"))
 ROW_KEYS = ("solver", "n_matches", "IR", "IN", "RE", "TE", "registered", "error")
 
 
-def pair_record(pair, backends: dict, cfg: FreeRegConfig) -> dict:
-    """One pair's rows for every iteration count of ``backends`` (``{steps: backend}``)."""
+def pair_record(pair, backends: dict, cfg: FreeRegConfig, variants=VARIANTS) -> dict:
+    """One pair's rows, one per (method, solver) of ``variants``, for every iteration count of
+    ``backends`` (``{steps: backend}``)."""
     t0 = time.perf_counter()
     base = pipeline.compute_features(pair, backends[max(backends)], cfg, diffusion=False, geometric=True)
     rec = {"seconds_geometric": round(time.perf_counter() - t0, 3), "by_steps": {}}
@@ -55,7 +56,7 @@ def pair_record(pair, backends: dict, cfg: FreeRegConfig) -> dict:
         except Exception as exc:  # scored as run_pair scores a failed pair
             feats = exc
         seconds = round(time.perf_counter() - t1, 3)
-        rows = pipeline.variant_rows(pair, feats, c, VARIANTS)
+        rows = pipeline.variant_rows(pair, feats, c, variants)
         rec["by_steps"][str(steps)] = {"seconds_diffusion": seconds,
                                        "rows": [{k: _plain(r.get(k)) for k in ROW_KEYS} for r in rows]}
     return rec
