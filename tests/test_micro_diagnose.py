@@ -140,20 +140,14 @@ def test_the_recoloured_variant_is_the_true_image_pass_on_its_own_image(tiny):
         np.testing.assert_array_equal(same["appearance_redrawn"][k], same["generation_oracle"][k])
 
 
-def test_the_first_variant_is_the_pipelines_freereg_d(monkeypatch):
+def test_the_first_variant_is_the_pipelines_freereg_d():
     pytest.importorskip("diffusers")
-    from freereg_lib import config
     from freereg_lib.training import diagnose, evaluate
 
     # Both runs at 5 DDIM steps instead of 20 (as the tiny fixture): the three DDIM samplings
-    # (FreeReg-D in each run, the frame hint's) are most of the time. diagnose() takes no config
-    # changes, so the config it builds defaults to 5 steps here; evaluate() is told so.
-    class FiveSteps(config.FreeRegConfig):
-        def __init__(self, **kw):
-            super().__init__(**{"ddim_steps": 5, **kw})
-
-    monkeypatch.setattr(config, "FreeRegConfig", FiveSteps)
-    ours = diagnose.diagnose(1, 2026, progress=False)
+    # (FreeReg-D in each run, the frame hint's) are most of the time.
+    ours = diagnose.diagnose(1, 2026, progress=False, ddim_steps=5)
+    assert ours["config_changes"] == {"ddim_steps": 5}
     theirs = evaluate.evaluate(1, 2026, progress=False, which=("trained",), ddim_steps=5)
     assert ours["freereg_d"]["IR_per_pair"] == theirs["trained"]["IR_per_pair"]
     for name in diagnose.VARIANTS:

@@ -155,23 +155,26 @@ def pair_inlier_ratios(pair, backend, cfg, maps=None) -> dict[str, float]:
 
 
 def diagnose(n_pairs: int = 30, seed: int = 2026, weights_dir=None, random_weights: bool = False,
-             noise_seed: int | None = None, progress: bool = True) -> dict:
+             noise_seed: int | None = None, progress: bool = True, **changes) -> dict:
     """Per-pair IRs and their means (%, 95 % bootstrap intervals) on the pairs
     :func:`freereg_lib.training.evaluate.evaluate` uses (``make_pairs(n_pairs, seed=seed)``), and
-    the paired permutation p between neighbouring variants."""
+    the paired permutation p between neighbouring variants; ``changes`` override the config
+    (e.g. ``ddim_steps``), as :func:`~freereg_lib.training.evaluate.evaluate`'s do."""
     from tqdm.auto import tqdm
 
     from freereg_lib.config import FreeRegConfig
     from freereg_lib.models import get_backend
 
-    cfg = FreeRegConfig() if noise_seed is None else FreeRegConfig().override(seed=int(noise_seed))
+    if noise_seed is not None:
+        changes = {**changes, "seed": int(noise_seed)}
+    cfg = FreeRegConfig().override(**changes) if changes else FreeRegConfig()
     backend = get_backend("micro", cfg, device="cpu", weights_dir=weights_dir, random_weights=random_weights)
     seeds = [seed * 1_000_003 + k for k in range(n_pairs)]
     rows = []
     for s in tqdm(seeds, desc="diagnose", disable=not progress):
         pair = render_with_depth_camera_images("indoor", s)
         rows.append(pair_inlier_ratios(pair, backend, cfg))
-    result = {"n_pairs": n_pairs, "seed": seed, "noise_seed": noise_seed,
+    result = {"n_pairs": n_pairs, "seed": seed, "noise_seed": noise_seed, "config_changes": changes,
               "weights": "random" if random_weights else str(weights_dir or "committed")}
     for name in VARIANTS:
         v = np.array([r[name] for r in rows])
