@@ -31,6 +31,7 @@ import numpy as np
 
 from freereg_lib.training.evaluate import bootstrap_ci, paired_permutation_p
 from freereg_lib.training.splits import SPLITS
+from freereg_lib.training.verdicts import _points
 
 METHODS = ("FreeReg-D", "FreeReg-G", "FreeReg")
 SOLVERS = ("kabsch", "pnp")
@@ -183,7 +184,7 @@ def paired_difference(a, b) -> dict:
 
 def difference_line(key: str, t: dict) -> str:
     """A report's line for one :func:`paired_difference`: points, interval, p."""
-    return f"  {key}: {t['diff']:+.1f} points [{t['diff_ci'][0]:+.1f}, {t['diff_ci'][1]:+.1f}], p = {t['p']:.4f}"
+    return f"  {key}: {_points(t)}, p = {t['p']:.4f}"
 
 
 def load_average_range(recs: list[dict]) -> list[float] | None:
