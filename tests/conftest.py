@@ -19,6 +19,28 @@ from freereg_lib.geometry import cameras
 NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
 
 
+def _kill_kernels_after_nbmake_runs() -> None:
+    """nbmake's kernels are killed once their notebook has run, as papermill's are here
+    (``shutdown_kernel="immediate"``) and in ``freereg_lib.commands.batch``: a graceful exit
+    tears down torch, diffusers and Open3D, ~1 s of CPU a kernel, and now and then waits 2.5 s
+    more for the kernel to go. nbmake has no option for it, so its client gets the default."""
+    try:
+        import nbclient
+        import nbmake.nb_run
+    except ImportError:
+        return
+
+    class KilledAfterRun(nbclient.NotebookClient):
+        def __init__(self, *args, **kwargs):
+            kwargs.setdefault("shutdown_kernel", "immediate")
+            super().__init__(*args, **kwargs)
+
+    nbmake.nb_run.NotebookClient = KilledAfterRun
+
+
+_kill_kernels_after_nbmake_runs()
+
+
 # `make test` runs two workers (`-n 2 --dist loadfile`) with the scheduler below: a file's tests stay
 # on one worker (they share module fixtures, e.g. the real-frame rows), except the notebook runs of
 # test_notebooks.py, each its own unit; units go out longest first by the seconds recorded in

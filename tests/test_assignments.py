@@ -386,7 +386,7 @@ def test_student_notebook_filled_from_the_key_runs_top_to_bottom(student_dir, tm
     nbformat.write(filled, str(path))
     done = papermill.execute_notebook(str(path), str(tmp_path / "executed.ipynb"), parameters=_params(tmp_path),
                                       kernel_name="python3", cwd=str(NOTEBOOKS), progress_bar=False,
-                                      request_save_on_cell_execute=False)
+                                      request_save_on_cell_execute=False, shutdown_kernel="immediate")
     printed = "".join(o.get("text", "") for c in _check_cells(done) for o in c.outputs)
     for name in N._defined_functions("\n".join(c.source for c in _solution_cells(done))):
         assert f"{name} matches" in printed, printed

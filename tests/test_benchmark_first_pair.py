@@ -23,7 +23,7 @@ def test_notebook_04_runs_when_its_first_pair_is_unreadable(tmp_path):
     out = tmp_path / "out"
     papermill.execute_notebook(
         str(NOTEBOOKS / "04_benchmark.ipynb"), str(tmp_path / "04.ipynb"), kernel_name="python3",
-        cwd=str(NOTEBOOKS), progress_bar=False,
+        cwd=str(NOTEBOOKS), progress_bar=False, shutdown_kernel="immediate",
         # The stub: which backend makes the readable pair's features is not what this is about,
         # and the micro one spends its DDIM steps there.
         parameters={"backend": "stub", "dataset": "scannet", "data_root": str(root), "n_pairs": 3, "ransac_iters": 2000,

@@ -169,7 +169,7 @@ def test_notebook_runs_with_other_parameters(run, tmp_path):
     executed = tmp_path / f"{stem}.executed.ipynb"
     papermill.execute_notebook(
         str(path), str(executed), parameters=params,
-        kernel_name="python3", cwd=str(NOTEBOOKS), progress_bar=False,
+        kernel_name="python3", cwd=str(NOTEBOOKS), progress_bar=False, shutdown_kernel="immediate",
     )
     _check_prose(nbformat.read(executed, as_version=4), stem)
 

@@ -46,7 +46,8 @@ def _execute(nb: Path, target: Path, seed: int, out_dir: Path) -> tuple[float, s
     t0 = time.perf_counter()
     try:
         pm.execute_notebook(str(nb), str(target), parameters={"seed": seed, "out_dir": str(out_dir)},
-                            kernel_name="python3", cwd=str(nb.parent), progress_bar=False)
+                            kernel_name="python3", cwd=str(nb.parent), progress_bar=False,
+                            shutdown_kernel="immediate")  # as batch.run_job: no ~1 s teardown a kernel
     except Exception as exc:  # keep going: the executed copy holds the error
         text = str(exc).strip()
         return time.perf_counter() - t0, text.splitlines()[-1] if text else repr(exc)
