@@ -39,7 +39,10 @@ def test_model_calls_run_on_the_configured_threads(caller_threads):
 
 
 def test_maps_do_not_depend_on_the_callers_thread_count(caller_threads):
-    cfg = config_for("3dmatch")
+    assert config_for("3dmatch").cpu_threads == 1
+    # 4 DDIM steps, not 20: every step's kernels run at the caller's count as at 20, at a fifth
+    # of the CPU; a thread-dependent sum would show after one step.
+    cfg = config_for("3dmatch", ddim_steps=4)
     assert cfg.cpu_threads == 1
     backend = get_backend("micro", cfg)
     pair = synthetic.make_pair(seed=3)
