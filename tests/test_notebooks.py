@@ -56,11 +56,11 @@ RUNS = {
         knobs={"t_hats": [150, 50], "ransac_iters": 2000},
     ),
     "02_geometric_features": dict(
-        params={"backend": "stub", "dataset": "icl", "seed": 1, "n_pairs": 2},
+        params={"backend": "stub", "dataset": "icl", "seed": 1, "n_pairs": 1},
         knobs={"mono_errors": [0.0, 0.27], "sweep_ransac_iters": 2000},
     ),
     "03_fusion": dict(
-        params={"backend": "stub", "seed": 1, "n_pairs": 2},
+        params={"backend": "stub", "seed": 1, "n_pairs": 1},
         knobs={"weights": [1.0, 0.5, 0.0], "ransac_iters": 5000},
     ),
     # Two pairs in one batch and the USAC PnP, through config_overrides.
