@@ -1,6 +1,10 @@
 """The same seed gives the same bytes: ``pairs.csv`` of two runs in separate processes, on a
 synthetic pair and an ICL pair, with the default 50k-iteration solvers (the official Kabsch-RANSAC
-samples from a seeded NumPy generator; OpenCV's PnP-RANSAC seeds itself the same way each call)."""
+samples from a seeded NumPy generator; OpenCV's PnP-RANSAC seeds itself the same way each call).
+
+Kabsch runs on both pairs, PnP on the ICL pair only: each solver and each data source is in the
+comparison, and a 50k-iteration PnP call (~1.7 s of CPU, it never stops early on these matches)
+on the synthetic pair as well checked the same seeding once more."""
 import subprocess
 import sys
 import textwrap
@@ -14,7 +18,7 @@ _RUN = textwrap.dedent("""
     scoring, out = sys.argv[1], sys.argv[2]
     rows = []
     # The solvers, their iteration counts and their seeds are the defaults.
-    for dataset, variants in (("synthetic_indoor", [("FreeReg", "kabsch"), ("FreeReg", "pnp")]),
+    for dataset, variants in (("synthetic_indoor", [("FreeReg", "kabsch")]),
                               ("icl", [("FreeReg-G", "kabsch"), ("FreeReg-G", "pnp")])):
         cfg = config_for(dataset, keypoint_grid=(12, 16), kabsch_scoring=scoring)
         assert cfg.ransac_iters == 50_000 and cfg.kabsch_confidence == 1.0
