@@ -17,7 +17,10 @@ from freereg_lib.geometry import cameras  # noqa: E402
 from freereg_lib.models import get_backend  # noqa: E402
 
 SMALL = (64, 128)
-CFG = config_for("synthetic_indoor", ddim_steps=5, ransac_iters=2000)  # fast solver
+# A fast solver, and 12 x 16 keypoints instead of 32 x 44: matching and descriptors were most of
+# the stub runs' CPU, and batching is about the model calls (the rows still mix registered and
+# failed pairs).
+CFG = config_for("synthetic_indoor", ddim_steps=5, ransac_iters=2000, keypoint_grid=(12, 16))
 
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
@@ -110,15 +113,29 @@ def _same_rows(a: list[dict], b: list[dict]) -> None:
                 assert x == y, (key, x, y)
 
 
-def test_run_pairs_rows_do_not_depend_on_the_batch_size(pairs):
-    """Stub: the same rows, exactly, with batches of 1, 2 and 4 pairs, an unreadable pair and
-    a pair with no usable cloud among them."""
+@pytest.fixture(scope="module")
+def items(pairs):
+    """The pairs with an unreadable pair and a pair with no usable cloud among them."""
     empty = synthetic.make_pair("indoor", seed=9, image_size=(96, 128))
     # The depth camera turned around: the whole cloud lies behind it.
     empty.T_pc_sensor = empty.T_pc_sensor @ cameras.make_pose(cameras.rotation_about([0, 1, 0], np.pi), [0, 0, 0])
-    items = [pairs[0], UnreadablePair("missing.ply", FileNotFoundError("missing.ply")), empty, *pairs[1:]]
+    return [pairs[0], UnreadablePair("missing.ply", FileNotFoundError("missing.ply")), empty, *pairs[1:]]
+
+
+@pytest.fixture(scope="module")
+def one_pair_a_call(items):
+    """The stub's rows of ``items``, one pair at a time: what every batched run must give. Each
+    pair's rows depend on that pair alone, so the rows of ``pairs`` are among them."""
+    return pipeline.run_pairs(items, get_backend("stub", CFG), CFG.override(pair_batch=1), progress=False)
+
+
+def test_run_pairs_rows_do_not_depend_on_the_batch_size(items, one_pair_a_call):
+    """Stub: the same rows, exactly, with batches of 1, 2 and 4 pairs, an unreadable pair and
+    a pair with no usable cloud among them."""
+    empty = items[2]
     be = get_backend("stub", CFG)
-    results = {b: pipeline.run_pairs(items, be, CFG.override(pair_batch=b), progress=False) for b in (1, 2, 4)}
+    results = {b: pipeline.run_pairs(items, be, CFG.override(pair_batch=b), progress=False) for b in (2, 4)}
+    results[1] = one_pair_a_call
     _same_rows(results[1], results[2])
     _same_rows(results[1], results[4])
     by_pair = {r["pair"]: r for r in results[4]}
@@ -133,13 +150,16 @@ def test_run_pairs_batches_the_model_calls(pairs):
     sizes = []
     real = be.diffusion_depth_batch
     be.diffusion_depth_batch = lambda depths, hints=None, layers=None: (sizes.append(len(depths)), real(depths, hints, layers))[1]
-    pipeline.run_pairs(iter(pairs), be, CFG.override(pair_batch=2), progress=False)  # a generator works too
+    # One variant that needs the diffusion features: the geometric features and the other
+    # solvers do not call the model, and were most of this run's CPU.
+    pipeline.run_pairs(iter(pairs), be, CFG.override(pair_batch=2), [("FreeReg-D", "kabsch")],
+                       progress=False)  # a generator works too
     assert sizes == [2, 1]
     with pytest.raises(ValueError, match="pair_batch"):
         pipeline.run_pairs(pairs, be, CFG.override(pair_batch=0), progress=False)
 
 
-def test_a_failing_batch_falls_back_to_one_pair_at_a_time(pairs):
+def test_a_failing_batch_falls_back_to_one_pair_at_a_time(pairs, one_pair_a_call):
     """A batched model call that fails (say, out of GPU memory) costs speed, not rows."""
     be = get_backend("stub", CFG)
     real = be.diffusion_rgb_batch
@@ -151,7 +171,8 @@ def test_a_failing_batch_falls_back_to_one_pair_at_a_time(pairs):
 
     be.diffusion_rgb_batch = picky
     batched = pipeline.run_pairs(pairs, be, CFG.override(pair_batch=3), progress=False)
-    single = pipeline.run_pairs(pairs, get_backend("stub", CFG), CFG, progress=False)
+    names = {p.name for p in pairs}
+    single = [r for r in one_pair_a_call if r["pair"] in names]
     _same_rows(batched, single)
 
 
@@ -201,13 +222,14 @@ def test_match_on_a_missing_gpu_is_a_clear_error(pairs):
     assert all("CUDA is not available" in r["error"] for r in rows)
 
 
-def test_float16_batches_track_float32(inputs):
+def test_float16_batches_track_float32(tiny, inputs):
     """The dtype CUDA runs in (float16), checked on the CPU: the batched branches run and their
     maps stay within 1 % of float32's (measured ~0.2 %)."""
     images, depths = inputs
     out = {}
-    for dtype in ("float32", "float16"):
-        be = get_backend("tiny", CFG, device="cpu", dtype=dtype, resize_hw=SMALL)
+    # float32 is the module's backend (the default dtype): one tiny model fewer to build.
+    backends = {"float32": tiny, "float16": get_backend("tiny", CFG, device="cpu", dtype="float16", resize_hw=SMALL)}
+    for dtype, be in backends.items():
         out[dtype] = (be.diffusion_rgb_batch(images[:2], layers=(0, 6)), be.diffusion_depth_batch(depths[:2], layers=(0, 6)))
     for side in (0, 1):
         for a, b in zip(out["float32"][side], out["float16"][side]):
