@@ -115,6 +115,9 @@ class Meter:
     @contextlib.contextmanager
     def measure(self, out: dict):
         gc.collect()
+        # What survived is long-lived (modules, models, earlier stages' results): frozen, the next
+        # collect scans only what is new. A full one took 0.18 s with torch and diffusers loaded.
+        gc.freeze()
         _malloc_trim()
         if self.cuda:
             import torch
