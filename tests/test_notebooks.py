@@ -6,8 +6,9 @@
   the tiny backend at 5 DDIM steps for 01, the embedded ICL sample for 02 and 04, a demo-layout pair for 04) into a temporary
   ``out_dir`` / ``figures_dir``; the tables it writes (CSV) and figures (PNG) must be there,
   and the metric columns of the tables must hold finite numbers; no Markdown cell of the
-  executed copy states a number its outputs contradict (:mod:`freereg_lib.report.prose`), and in
-  notebook 00's a number and a glue name planted into its Markdown are flagged.
+  executed copy states a number its outputs contradict (:mod:`freereg_lib.report.prose`), in
+  notebook 00's a number and a glue name planted into its Markdown are flagged, and every exercise
+  (the answer key's solution cells) passes its check cell, unskipped.
 * ``python -m freereg_lib reproduce --quick`` prints a Markdown table of FMR / IR / IN / RR.
 
 The default-parameter runs are ``pytest --nbmake notebooks/`` (see the Makefile).
@@ -171,7 +172,9 @@ def test_notebook_runs_with_other_parameters(run, tmp_path):
         str(path), str(executed), parameters=params,
         kernel_name="python3", cwd=str(NOTEBOOKS), progress_bar=False, shutdown_kernel="immediate",
     )
-    _check_prose(nbformat.read(executed, as_version=4), stem)
+    executed_nb = nbformat.read(executed, as_version=4)
+    _check_prose(executed_nb, stem)
+    _check_exercises(executed_nb)
 
     tables = sorted(out_dir.glob("*.csv"))
     assert tables, f"{stem} wrote no CSV table into out_dir"
@@ -212,6 +215,15 @@ def _check_prose(nb, stem: str) -> None:
     md["c33"]["source"] += "\nThe feature pass runs at {glue:text}`t_feature`."
     found = [(p.cell_id, p.kind, p.found) for p in check_notebook(planted, stem)]
     assert found == [("c33", "glue", "t_feature"), ("c36", "number", "0.62")], found
+
+
+def _check_exercises(nb) -> None:
+    """Each exercise's check cell (tagged ``check``) ran the answer key's solution and passed: an
+    unsolved or failing exercise would print "EXERCISE NOT DONE" or stop the run."""
+    checks = [c for c in nb.cells if c.cell_type == "code" and "check" in c.metadata.get("tags", [])]
+    for cell in checks:
+        printed = "".join(o.get("text", "") for o in cell.outputs)
+        assert cell.execution_count is not None and "EXERCISE NOT DONE" not in printed, (cell.source[:200], printed)
 
 
 def _check_benchmark_outputs(out_dir: Path, params: dict) -> None:
