@@ -17,8 +17,8 @@ from freereg_lib.teaching import gradebook, wire
 # The hard limit of one student's process below. Every student but the one who hangs must finish
 # within it, start-up included (a student process imports only NumPy: each of the others took
 # ~0.2 s alone, more when the cores are shared). The hanging student costs exactly this long
-# (asleep, no CPU), after catching its case's 5 s time-out: the limit must come after that.
-LIMIT_S = 10
+# (asleep, no CPU), after catching its case's 3 s time-out: the limit must come after that.
+LIMIT_S = 6
 
 
 def _student(folder: Path, fuse_source: str) -> Path:
@@ -75,7 +75,7 @@ def test_each_student_in_its_own_process_results_written_as_each_finishes(tmp_pa
         ("memory", fusion_key_source("student_fuse") + HOGS_MEMORY), ("floods", FLOODS),
         ("honest", fusion_key_source("student_fuse"))]}
     out = tmp_path / "grades"
-    rows = gradebook.grade_all([tmp_path / "class"], out=out, timeout=5, limit=LIMIT_S, memory_mb=3072, echo=False)
+    rows = gradebook.grade_all([tmp_path / "class"], out=out, timeout=3, limit=LIMIT_S, memory_mb=3072, echo=False)
     results = {r["id"]: r for r in rows}
     assert list(results) == sorted(students)  # every student, the ones after the faults too
     by = {s: {e["exercise"]: e for e in r["exercises"]} for s, r in results.items()}
