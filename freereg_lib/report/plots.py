@@ -11,6 +11,7 @@ labelled in %; depth panels (:func:`depth_panel`) carry a colour bar in metres.
 """
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
@@ -39,34 +40,37 @@ def save(fig, name: str, folder: str | Path) -> Path:
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"{name}.png"
-    fig.canvas.draw()  # lays out the text, so that the tight box is the saved one
-    pad = 0.1  # savefig's default pad_inches around the tight box
-    width_in = fig.get_tightbbox(fig.canvas.get_renderer()).width + 2 * pad
-    dpi = min(DPI, (MAX_WIDTH_PX - 2) / max(width_in, 1e-3))
-    raw = folder / f".{name}.raw.png"
-    try:
-        fig.savefig(raw, dpi=dpi, bbox_inches="tight", pad_inches=pad)
-        compact_png(raw, path, MAX_WIDTH_PX, MAX_BYTES)
-    finally:
-        raw.unlink(missing_ok=True)
+    # One layout pass for the tight box, one rendering, an uncompressed PNG in memory: a first full
+    # draw, savefig's own "tight" pass and a compressed PNG file read back cost as much again.
+    fig.draw_without_rendering()
+    box = fig.get_tightbbox(fig.canvas.get_renderer()).padded(0.1)  # savefig's default pad_inches
+    dpi = min(DPI, (MAX_WIDTH_PX - 2) / max(box.width, 1e-3))
+    buf = io.BytesIO()
+    fig.savefig(buf, dpi=dpi, bbox_inches=box, format="png", pil_kwargs={"compress_level": 0})
+    with Image.open(buf) as im:
+        _compact(im, path, MAX_WIDTH_PX, MAX_BYTES)
     return path
 
 
 def compact_png(src: Path, dst: Path, max_width: int = 1000, max_bytes: int = 400_000) -> Path:
     """Write ``src`` as a small PNG: at most ``max_width`` px wide, 256 colours, at most ``max_bytes``
     (the width shrinks by steps until it fits)."""
-    dst.parent.mkdir(parents=True, exist_ok=True)
     with Image.open(src) as im:
-        im = im.convert("RGB")
-        width = min(max_width, im.width)
-        while True:
-            small = im.resize((width, max(1, round(im.height * width / im.width))), Image.LANCZOS) \
-                if width < im.width else im
-            small.quantize(colors=256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE).save(
-                dst, format="PNG", optimize=True)
-            if dst.stat().st_size <= max_bytes or width <= 200:
-                return dst
-            width = int(width * 0.8)
+        return _compact(im, Path(dst), max_width, max_bytes)
+
+
+def _compact(im: Image.Image, dst: Path, max_width: int, max_bytes: int) -> Path:
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    im = im.convert("RGB")
+    width = min(max_width, im.width)
+    while True:
+        small = im.resize((width, max(1, round(im.height * width / im.width))), Image.LANCZOS) \
+            if width < im.width else im
+        small.quantize(colors=256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE).save(
+            dst, format="PNG", optimize=True)
+        if dst.stat().st_size <= max_bytes or width <= 200:
+            return dst
+        width = int(width * 0.8)
 
 
 def _fit_width(width: float, height: float, max_width: float = FIG_WIDTH_IN) -> tuple[float, float]:
