@@ -17,6 +17,8 @@ import pytest
 from freereg_lib.geometry import cameras
 
 NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
+# The batch runner's job notebook is run by the batch tests; under `--nbmake` it is not a test itself.
+collect_ignore_glob = ["fixtures/*.ipynb"]
 
 
 def _kill_kernels_after_nbmake_runs() -> None:
