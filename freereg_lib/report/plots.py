@@ -37,9 +37,7 @@ def save(fig, name: str, folder: str | Path) -> Path:
     :data:`MAX_WIDTH_PX` at it; the PNG is then compacted like the README's gallery (256 colours,
     ``optimize``; narrowed further only if it were still over :data:`MAX_BYTES`).
     """
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    path = folder / f"{name}.png"
+    path = Path(folder) / f"{name}.png"  # _compact makes the folder
     # One layout pass for the tight box, one rendering, an uncompressed PNG in memory: a first full
     # draw, savefig's own "tight" pass and a compressed PNG file read back cost as much again.
     fig.draw_without_rendering()
