@@ -385,9 +385,10 @@ def test_student_notebook_filled_from_the_key_is_the_key_but_for_its_folders(stu
     and test_notebooks.py's with other parameters, which also require each check cell to pass
     unskipped) are the filled notebook's runs, top to bottom."""
     for stem in WITH_EXERCISES:
-        filled = fill(_student(student_dir, stem), _key(stem))
+        key = _key(stem)
+        filled = fill(_student(student_dir, stem), key)
         code = [c.source for c in filled.cells if c.cell_type == "code"]
-        key_code = [c.source for c in _key(stem).cells if c.cell_type == "code"]
+        key_code = [c.source for c in key.cells if c.cell_type == "code"]
         assert len(code) == len(key_code) and code[1:] == key_code[1:], stem
         path = tmp_path / f"{stem}.ipynb"
         nbformat.write(filled, str(path))
