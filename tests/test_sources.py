@@ -56,3 +56,28 @@ def test_on_disk_n_pairs_are_spread_and_unreadable_ones_recorded(monkeypatch):
     assert len(list(sources.iter_pairs("3dmatch", None, root="anywhere"))) == 10
     with pytest.raises(ValueError, match="pass root="):
         list(sources.iter_pairs("3dmatch", 3))
+
+
+def test_first_readable_skips_unreadable_pairs_and_reads_no_further(tmp_path):
+    from test_loaders import POSES, make_scannet
+
+    from freereg_lib.data.pair import UnreadablePair
+
+    # Frames 0, 20 and 40: pairs (0, 20), (0, 40), (20, 40); frame 0's image is broken.
+    root = make_scannet(tmp_path, frames={f: POSES[min(f // 20, 2)] for f in range(41)})[0]
+    (root / "scene0707_00" / "color" / "0.jpg").write_bytes(b"\xff\xd8\xff not a jpeg")
+    pairs = list(sources.iter_pairs("scannet", 3, root=str(root)))
+    assert [type(p).__name__ for p in pairs] == ["UnreadablePair", "UnreadablePair", "Pair"]
+    assert sources.first_readable(pairs) is pairs[2]
+
+    def then_fail():
+        yield from pairs
+        raise AssertionError("read past the first readable pair")
+
+    assert sources.first_readable(then_fail()) is pairs[2]
+    # None readable: the first one, which raises its own error when used; none at all: None.
+    assert sources.first_readable(pairs[:2]) is pairs[0]
+    with pytest.raises(Exception, match="0.jpg"):
+        pairs[0].validate()
+    assert sources.first_readable([]) is None
+    assert isinstance(sources.first_readable(iter(pairs[1:2])), UnreadablePair)

@@ -5,14 +5,14 @@ real sample; ``3dmatch``, ``scannet``, ``kitti`` and ``demo`` read a user-given 
 """
 from __future__ import annotations
 
-from typing import Iterator
+from typing import Iterable, Iterator
 
 import numpy as np
 
 from freereg_lib.data import synthetic
 from freereg_lib.data.datasets import open_dataset
 from freereg_lib.data.datasets.icl import ICLSample
-from freereg_lib.data.pair import Pair, load_or_record
+from freereg_lib.data.pair import Pair, UnreadablePair, load_or_record
 from freereg_lib.data.shards import parse_shard, shard_items
 
 SYNTHETIC = ("synthetic_indoor", "synthetic_outdoor")
@@ -118,6 +118,19 @@ def iter_pairs(
             yield load_or_record(_entry_name(name, entry), src.pair, entry)
         return
     raise ValueError(f"unknown dataset {dataset!r}; expected one of {SYNTHETIC + EMBEDDED + ON_DISK}")
+
+
+def first_readable(pairs: Iterable[Pair | UnreadablePair]) -> Pair | UnreadablePair | None:
+    """The first pair of ``pairs`` that could be read, taken without reading further (a pair
+    to show before a benchmark whose unreadable pairs are its failed rows). When none could be
+    read, the first :class:`~freereg_lib.data.pair.UnreadablePair`, whose fields raise its
+    error; None when ``pairs`` is empty."""
+    first = None
+    for pair in pairs:
+        if not isinstance(pair, UnreadablePair):
+            return pair
+        first = first or pair
+    return first
 
 
 def config_name(dataset: str) -> str:
