@@ -37,20 +37,10 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from freereg_lib.data.datasets.common import (
-    INDOOR_DEPTH_RANGE,
-    INDOOR_MAX_TRANSLATION,
-    INVALID_DEPTH,
-    checked_pose,
-    read_depth,
-    read_rgb,
+    INDOOR_DEPTH_RANGE, INDOOR_MAX_TRANSLATION, INVALID_DEPTH, checked_pose, read_depth, read_rgb,
 )
 from freereg_lib.data.datasets.pairlists import (
-    PairEntry,
-    PairSource,
-    depth_in_image,
-    load_or_build,
-    require,
-    voxel_downsample,
+    PairEntry, PairSource, depth_in_image, load_or_build, require, voxel_downsample,
 )
 from freereg_lib.data.datasets.threedmatch import FreeRegScenes
 from freereg_lib.data.pair import Pair

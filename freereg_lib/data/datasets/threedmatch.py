@@ -33,20 +33,10 @@ from pathlib import Path
 import numpy as np
 
 from freereg_lib.data.datasets.common import (
-    INDOOR_DEPTH_RANGE,
-    INDOOR_MAX_TRANSLATION,
-    INVALID_DEPTH,
-    read_depth,
-    read_pose_txt,
-    read_rgb,
+    INDOOR_DEPTH_RANGE, INDOOR_MAX_TRANSLATION, INVALID_DEPTH, read_depth, read_pose_txt, read_rgb,
 )
 from freereg_lib.data.datasets.pairlists import (
-    PairEntry,
-    PairSource,
-    depth_in_image,
-    load_or_build,
-    require,
-    voxel_downsample,
+    PairEntry, PairSource, depth_in_image, load_or_build, require, voxel_downsample,
 )
 from freereg_lib.data.pair import Pair
 from freereg_lib.geometry import cameras
