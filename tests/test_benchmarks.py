@@ -37,14 +37,15 @@ def _run(*args, timeout=600, script=SCRIPT):
                           capture_output=True, text=True, timeout=timeout)
 
 
-def _main(monkeypatch, capsys, name, *args):
-    """``name``'s ``main(args)`` in this process, for the paths that stop before any work (the
-    script runs above as a program); ``(exit status, stderr)``."""
+def _main(monkeypatch, capsys, name, *args, out=False):
+    """``name``'s ``main(args)`` in this process: ``(exit status, stderr)``, with ``out`` also stdout.
+    bench_pipeline measures memory and sets torch's threads, so it runs above as a program."""
     monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
     import importlib
 
     rc = importlib.import_module(name).main(list(args))
-    return rc, capsys.readouterr().err
+    captured = capsys.readouterr()
+    return (rc, captured.out, captured.err) if out else (rc, captured.err)
 
 
 def test_ci_mode_prints_the_stage_table(tmp_path):
@@ -75,12 +76,12 @@ def test_ci_mode_prints_the_stage_table(tmp_path):
 
 def test_pnp_benchmark_prints_one_row_per_method(tmp_path, monkeypatch, capsys):
     out_json = tmp_path / "pnp.json"
-    proc = _run("--pairs", "1", "--iters", "300", "--methods", "iterative", "iterative:2", "usac", "--json", str(out_json),
-                script=ROOT / "benchmarks" / "bench_pnp.py", timeout=300)
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    rows = [line for line in proc.stdout.splitlines() if line.startswith("| ") and "PnP method" not in line]
+    rc, out, err = _main(monkeypatch, capsys, "bench_pnp", "--pairs", "1", "--iters", "300", "--methods", "iterative",
+                         "iterative:2", "usac", "--json", str(out_json), out=True)
+    assert rc == 0, out[-3000:] + err[-3000:]
+    rows = [line for line in out.splitlines() if line.startswith("| ") and "PnP method" not in line]
     assert [r.split("|")[1].strip() for r in rows] == ["iterative", "iterative:2", "usac"]
-    assert "device: CPU" in proc.stdout and out_json.is_file()
+    assert "device: CPU" in out and out_json.is_file()
     rc, err = _main(monkeypatch, capsys, "bench_pnp", "--pairs", "1", "--methods", "magic", "usac:x")
     assert rc == 2 and "magic" in err and "usac:x" in err
 
