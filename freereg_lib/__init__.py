@@ -41,12 +41,11 @@ LAZY_ATTRIBUTES = {"Pair": "freereg_lib.data.pair"}
 
 
 def __getattr__(name: str):
-    if name in LAZY_ATTRIBUTES:
-        value = getattr(importlib.import_module(LAZY_ATTRIBUTES[name]), name)
-        globals()[name] = value
-        return value
     if name in SHORT_NAMES:
-        module = importlib.import_module(SHORT_NAMES[name])
-        globals()[name] = module
-        return module
-    raise AttributeError(f"module 'freereg_lib' has no attribute {name!r}")
+        value = importlib.import_module(SHORT_NAMES[name])
+    elif name in LAZY_ATTRIBUTES:
+        value = getattr(importlib.import_module(LAZY_ATTRIBUTES[name]), name)
+    else:
+        raise AttributeError(f"module 'freereg_lib' has no attribute {name!r}")
+    globals()[name] = value
+    return value
