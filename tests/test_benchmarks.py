@@ -37,15 +37,15 @@ def _run(*args, timeout=600, script=SCRIPT):
                           capture_output=True, text=True, timeout=timeout)
 
 
-def _main(monkeypatch, capsys, name, *args, out=False):
-    """``name``'s ``main(args)`` in this process: ``(exit status, stderr)``, with ``out`` also stdout.
-    bench_pipeline measures memory and sets torch's threads, so it runs above as a program."""
+def _main(monkeypatch, capsys, name, *args):
+    """``name``'s ``main(args)`` in this process: ``(exit status, stdout, stderr)``. bench_pipeline
+    measures memory and sets torch's threads, so its table comes from a run as a program above."""
     monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
     import importlib
 
     rc = importlib.import_module(name).main(list(args))
     captured = capsys.readouterr()
-    return (rc, captured.out, captured.err) if out else (rc, captured.err)
+    return rc, captured.out, captured.err
 
 
 def test_ci_mode_prints_the_stage_table(tmp_path):
@@ -77,18 +77,18 @@ def test_ci_mode_prints_the_stage_table(tmp_path):
 def test_pnp_benchmark_prints_one_row_per_method(tmp_path, monkeypatch, capsys):
     out_json = tmp_path / "pnp.json"
     rc, out, err = _main(monkeypatch, capsys, "bench_pnp", "--pairs", "1", "--iters", "300", "--methods", "iterative",
-                         "iterative:2", "usac", "--json", str(out_json), out=True)
+                         "iterative:2", "usac", "--json", str(out_json))
     assert rc == 0, out[-3000:] + err[-3000:]
     rows = [line for line in out.splitlines() if line.startswith("| ") and "PnP method" not in line]
     assert [r.split("|")[1].strip() for r in rows] == ["iterative", "iterative:2", "usac"]
     assert "device: CPU" in out and out_json.is_file()
-    rc, err = _main(monkeypatch, capsys, "bench_pnp", "--pairs", "1", "--methods", "magic", "usac:x")
+    rc, _, err = _main(monkeypatch, capsys, "bench_pnp", "--pairs", "1", "--methods", "magic", "usac:x")
     assert rc == 2 and "magic" in err and "usac:x" in err
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="a GPU is present: gpu mode would run")
 def test_gpu_mode_without_a_gpu_says_not_measured(monkeypatch, capsys):
-    rc, err = _main(monkeypatch, capsys, "bench_pipeline", "--mode", "gpu")
+    rc, _, err = _main(monkeypatch, capsys, "bench_pipeline", "--mode", "gpu")
     assert rc == 2
     assert "not measured: no GPU" in err
 
