@@ -176,6 +176,13 @@ def fusion_student(folder, *sources: str):
     return student_notebook(folder, "03_fusion", *sources)
 
 
+def check_cells(nb):
+    """The code cells of ``nb`` tagged as an exercise's check (``teaching.notebooks.CHECK_TAG``)."""
+    from freereg_lib.teaching.notebooks import CHECK_TAG
+
+    return [c for c in nb.cells if c.cell_type == "code" and CHECK_TAG in c.metadata.get("tags", [])]
+
+
 def fill(student, key):
     """The student notebook with the key's solution cells put back (a copy), matched by the
     functions they define, else by their order."""

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import fill
+from conftest import check_cells, fill
 
 nbformat = pytest.importorskip("nbformat")
 papermill = pytest.importorskip("papermill")
@@ -42,11 +42,7 @@ WITH_EXERCISES = sorted({e.notebook for e in EXERCISES.values()})
 
 
 def _solution_cells(nb):
-    return [c for c in nb.cells if c.cell_type == "code" and "solution" in c.metadata.get("tags", [])]
-
-
-def _check_cells(nb):
-    return [c for c in nb.cells if c.cell_type == "code" and "check" in c.metadata.get("tags", [])]
+    return [c for c in nb.cells if N._is_solution(c)]
 
 
 def _body_lines(source: str) -> set[str]:
@@ -88,13 +84,13 @@ def _key(stem):
 # --------------------------------------------------------------------------------------
 # The registry and the notebooks agree.
 
-def test_every_exercise_has_its_tagged_solution_and_check_cells():
+def test_every_exercise_has_its_tagged_solution_andcheck_cells():
     for stem in WITH_EXERCISES:
         nb = _key(stem)
         defined = [n for c in _solution_cells(nb) for n in N._defined_functions(c.source)]
         registered = [n for n, e in EXERCISES.items() if e.notebook == stem]
         assert sorted(defined) == sorted(registered), f"{stem}: solution cells define {defined}, registry {registered}"
-        checks = "\n".join(c.source for c in _check_cells(nb))
+        checks = "\n".join(c.source for c in check_cells(nb))
         for name in defined:
             assert name in checks, f"{stem}: no check cell calls {name}"
     for e in EXERCISES.values():
@@ -138,7 +134,7 @@ def test_student_notebooks_hold_no_solution_code(student_dir):
 def test_stubs_keep_signatures_docstrings_and_checks_and_raise_a_hint(student_dir):
     for stem in WITH_EXERCISES:
         key, student = _key(stem), _student(student_dir, stem)
-        assert [c.source for c in _check_cells(student)] == [c.source for c in _check_cells(key)]
+        assert [c.source for c in check_cells(student)] == [c.source for c in check_cells(key)]
         assert len(_solution_cells(student)) == len(_solution_cells(key))
         for mine, theirs in zip(_solution_cells(student), _solution_cells(key)):
             ns_s, ns_k = {"np": np}, {"np": np}
@@ -409,8 +405,8 @@ def test_unfilled_student_notebook_runs_to_its_last_cell(unfilled_run):
     code = [c for c in nb.cells if c.cell_type == "code"]
     assert not [k for k, c in enumerate(code) if any(o.output_type == "error" for o in c.outputs)]
     assert all(c.execution_count is not None for c in code), "a code cell did not run"
-    checks = _check_cells(nb)
-    assert len(checks) == len(_check_cells(_key(PAPERMILL_STEM))) == 2
+    checks = check_cells(nb)
+    assert len(checks) == len(check_cells(_key(PAPERMILL_STEM))) == 2
     for cell in checks:
         printed = "".join(o.get("text", "") for o in cell.outputs)
         name = next(n for n in EXERCISES if n in cell.source)

@@ -219,10 +219,9 @@ def _check_prose(nb, stem: str) -> None:
 def _check_exercises(nb) -> None:
     """Each exercise's check cell (tagged ``check``) ran the answer key's solution and passed: an
     unsolved or failing exercise would print "EXERCISE NOT DONE" or stop the run."""
-    from freereg_lib.teaching.notebooks import CHECK_TAG
+    from conftest import check_cells
 
-    checks = [c for c in nb.cells if c.cell_type == "code" and CHECK_TAG in c.metadata.get("tags", [])]
-    for cell in checks:
+    for cell in check_cells(nb):
         printed = "".join(o.get("text", "") for o in cell.outputs)
         assert cell.execution_count is not None and "EXERCISE NOT DONE" not in printed, (cell.source[:200], printed)
 
