@@ -15,6 +15,10 @@ paper float the companion re-draws mapped to its notebook section and figure), t
 notebooks under ``notebooks/`` (each with a first line naming its backend), ``docs/``, the
 benchmarks' results, the teacher's guide, the model cards, and ``api/``: one page per topic of the
 method layers (:data:`API_TOPICS`), made by autodoc from the docstrings.
+
+The site folder is emptied before Sphinx writes it, so the book writes only into a new or empty folder
+or one it built (:func:`~freereg_lib.commands.book_inputs.output_fault` refuses the rest, and ``--out``
+equal to or above an input, with exit status 2 before anything is staged).
 """
 from __future__ import annotations
 
@@ -28,7 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable
 
-from freereg_lib.commands.book_inputs import exit_on_bad_sources
+from freereg_lib.commands.book_inputs import clear_site, exit_on_bad_sources, output_fault
 from freereg_lib.data import paper
 from freereg_lib.report import prose
 from freereg_lib.report.plots import compact_png
@@ -177,6 +181,10 @@ API_TOPICS: tuple[tuple[str, str, str, tuple[str, ...]], ...] = (
 
 class BookError(RuntimeError):
     """The run cannot be rendered as the book promises (no notebook, a float without its section, a warning)."""
+
+
+class BookOutputError(BookError):
+    """The book may not write where it was asked to (a folder it did not build, an input, a read-only folder)."""
 
 
 _MD_IMAGE = re.compile(r"!\[[^\]]*\]\(([^)\s#]+)\)")
@@ -392,6 +400,10 @@ def build_book(run_dir: str | Path, out: str | Path | None = None, figures_dir: 
     site = Path(out).resolve() if out is not None else run_dir / "site"
     figures_dir = Path(figures_dir) if figures_dir is not None else (
         run_dir / "figures" if (run_dir / "figures").is_dir() else ROOT / "figures")
+    inputs = [conf, Path(docs_dir) if docs_dir is not None else ROOT / "docs", ROOT]
+    fault = output_fault(run_dir, site, figures_dir, inputs, [stem for f in PAPER_FLOATS for stem in f.figures])
+    if fault:  # before anything is staged: the book never deletes a folder it did not build
+        raise BookOutputError(fault)
     src = run_dir / "book_src"
     if src.exists():
         shutil.rmtree(src)
@@ -400,8 +412,7 @@ def build_book(run_dir: str | Path, out: str | Path | None = None, figures_dir: 
     docs = stage_docs(src, Path(docs_dir) if docs_dir is not None else ROOT / "docs")
     stage_api(src)
     write_index(src, pages, figures_dir, docs, run_dir)
-    if site.exists():
-        shutil.rmtree(site)
+    clear_site(site)
     cmd = [sys.executable, "-m", "sphinx", "-b", "html", "-q", "-n", "-W", "--keep-going", "-c", str(conf),
            "-d", str(run_dir / "book_doctrees"), str(src), str(site)]
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
@@ -421,7 +432,7 @@ def main(argv: Iterable[str] | None = None) -> int:
         index = build_book(args.run, args.out, args.figures)
     except BookError as exc:
         print(f"book: {exc}", file=sys.stderr)
-        return 1
+        return 2 if isinstance(exc, BookOutputError) else 1
     print(f"Site: {index}")
     return 0
 

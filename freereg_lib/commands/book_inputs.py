@@ -5,12 +5,16 @@ notebook path that is a folder, or a docs page saved in another encoding than UT
 book command stop with a Python traceback from the staging code, or with pages of Sphinx
 warnings a minute later. :func:`source_fault` names the first such file and what was expected;
 :func:`exit_on_bad_sources` prints it as one line and exits with status 2 (bad input, as the
-other commands), before anything is staged or built.
+other commands), before anything is staged or built. :func:`output_fault` does the same for where the
+book writes: its site folder, the run folder it stages in, and the figures its index shrinks.
 """
 from __future__ import annotations
 
 import json
+import os
+import shutil
 import sys
+import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -109,3 +113,106 @@ def exit_on_bad_sources(run_dir: str | Path, docs_dir: str | Path, extra_pages: 
     if fault:
         print(f"book: {fault}", file=sys.stderr)
         raise SystemExit(2)
+
+
+# --- where the book writes -------------------------------------------------------------------------------
+# The book empties its site folder before Sphinx writes it. It empties only a folder it built itself (one
+# holding SITE_MARK, written before Sphinx starts, so a build that failed half way is still the book's),
+# or the default ``<run>/site`` of an older build (Sphinx's ``.buildinfo`` there): a user's folder given as
+# ``--out`` is never emptied, and ``--out`` naming the run folder or another input is refused.
+SITE_MARK = ".freereg-book-site"
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+CHOOSE = "choose a new or empty folder, e.g. <run>/site (the default)"
+
+
+def _probe_write(folder: Path) -> None:
+    """Create and remove a file in ``folder``: an OSError says the book could not write there (a read-only
+    mount, a full disk, ``/proc``; ``os.access`` cannot tell, as root it says yes)."""
+    fd, name = tempfile.mkstemp(prefix=".freereg-probe-", dir=folder)
+    os.close(fd)
+    os.unlink(name)
+
+
+def _writable_fault(folder: Path, what: str) -> str:
+    """``folder`` (or, when it does not exist yet, its nearest existing parent) refusing a file, as one line."""
+    where = folder
+    while not where.exists() and where != where.parent:
+        where = where.parent
+    if not where.is_dir():
+        return f"{what} {folder}: {where} is a file, not a folder; {CHOOSE}"
+    try:
+        _probe_write(where)
+    except OSError as exc:
+        return f"{what} {folder}: cannot write in {where} ({exc.strerror or exc}); {CHOOSE}"
+    return ""
+
+
+def _figure_fault(path: Path) -> str:
+    """What is wrong with the run's figure ``path`` for the book's index ("" when it is a readable PNG)."""
+    from PIL import Image
+
+    try:
+        with path.open("rb") as f:
+            head = f.read(8)
+        if head != PNG_MAGIC:
+            return (f"{path}: not a PNG image (it starts with {head[:4]!r}); expected the PNG a notebook drew: "
+                    "re-run the notebook, or remove the file (the index then says the figure was not drawn)")
+        with Image.open(path) as im:
+            im.verify()
+    except OSError as exc:  # PIL's errors on a cut file are OSErrors (or SyntaxError on a bad chunk)
+        return f"{path}: a damaged PNG ({exc}); re-run the notebook that draws it, or remove the file"
+    except SyntaxError as exc:
+        return f"{path}: a damaged PNG ({exc}); re-run the notebook that draws it, or remove the file"
+    return ""
+
+
+def output_fault(run_dir: Path, site: Path, figures_dir: Path, inputs: Iterable[Path],
+                 figure_stems: Iterable[str]) -> str:
+    """Why the book must not write the site ``site`` of ``run_dir`` ("" when it may), as one line.
+
+    Refused: ``site`` equal to, or a folder above, the run folder or any of ``inputs`` (docs, the
+    configuration, the project); ``site`` inside the book's staging folders; a file; a folder holding
+    files the book did not write; a run folder or site that cannot be written; a figure of
+    ``figures_dir`` named in ``figure_stems`` that is not a readable PNG."""
+    run_dir, site = Path(run_dir).resolve(), Path(site).resolve()
+    for folder, name in [(run_dir, "the run folder")] + [(Path(p).resolve(), "an input of the book") for p in inputs]:
+        if site == folder or folder.is_relative_to(site):
+            return (f"--out {site}: {'is' if site == folder else 'holds'} {name} ({folder}); the book replaces its "
+                    f"site folder, so it would delete it: {CHOOSE}")
+    for staging in ("book_src", "book_doctrees"):
+        if site.is_relative_to(run_dir / staging):
+            return f"--out {site}: inside {run_dir / staging}, which the book rewrites each build; {CHOOSE}"
+    if site.exists() and not site.is_dir():
+        return f"--out {site}: a file, not a folder; {CHOOSE}"
+    if site.is_dir() and not (site / SITE_MARK).is_file():
+        legacy = site == run_dir / "site" and (site / ".buildinfo").is_file()  # built before the mark existed
+        foreign = sorted(p.name for p in site.iterdir())
+        if foreign and not legacy:
+            return (f"--out {site}: holds files the book did not write ({', '.join(foreign[:3])}"
+                    f"{', ...' if len(foreign) > 3 else ''}); the book empties its site folder before it writes, "
+                    f"so it writes only into a new or empty folder or a site it built: {CHOOSE}")
+    try:
+        _probe_write(run_dir)
+    except OSError as exc:
+        return (f"{run_dir}: cannot write in the run folder ({exc.strerror or exc}); the book stages its sources in "
+                "<run>/book_src: copy the run folder somewhere writable (`cp -r RUN /tmp/run`) and build from there")
+    fault = _writable_fault(site, "--out")
+    if fault:
+        return fault
+    for stem in figure_stems:
+        path = Path(figures_dir) / f"{stem}.png"
+        if path.is_file():
+            fault = _figure_fault(path)
+            if fault:
+                return fault
+    return ""
+
+
+def clear_site(site: Path) -> None:
+    """Make ``site`` an empty folder holding :data:`SITE_MARK` (after :func:`output_fault` let it through):
+    a site the book built is emptied, a new folder created."""
+    if site.is_dir() and any(site.iterdir()):
+        shutil.rmtree(site)
+    site.mkdir(parents=True, exist_ok=True)
+    (site / SITE_MARK).write_text("Written by `python -m freereg_lib.commands.book`: the book may empty this "
+                                  "folder when it rebuilds the site.\n", encoding="utf-8")
