@@ -41,6 +41,7 @@ import numpy as np
 
 from freereg_lib.training.evaluate import bootstrap_ci, paired_permutation_p
 from freereg_lib.training.splits import guard_eval_seed
+from freereg_lib.training.provenance import machine_record
 
 VARIANTS = ("freereg_d", "hint_from_frame", "appearance_redrawn", "generation_oracle", "same_modality")
 # The paired tests reported: the hint's cost, the generation's (split at the colours no depth
@@ -238,7 +239,7 @@ def main(argv=None) -> int:
     print(report(result))
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
+        Path(args.out).write_text(json.dumps({**result, "provenance": machine_record()}, indent=1) + "\n")
     return 0
 
 

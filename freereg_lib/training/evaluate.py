@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from freereg_lib.training.splits import guard_eval_seed
+from freereg_lib.training.provenance import machine_record
 
 VARIANT = ("FreeReg-D", "pnp")
 PERMUTATIONS = 20000  # sign flips of the paired test; its smallest p is 1 / (PERMUTATIONS + 1)
@@ -168,7 +169,7 @@ def main(argv=None) -> int:
     print(report(result))
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
+        Path(args.out).write_text(json.dumps({**result, "provenance": machine_record()}, indent=1) + "\n")
     return 0
 
 

@@ -28,6 +28,7 @@ import numpy as np
 
 from freereg_lib.models.micro import depth as MD
 from freereg_lib.training.splits import guard_eval_seed
+from freereg_lib.training.provenance import machine_record
 
 BINS = ((0.0, 2.0), (2.0, 4.0), (4.0, np.inf))
 EDGE_RANGE_M, EDGE_WINDOW = 0.2, 7
@@ -321,7 +322,7 @@ def main(argv=None) -> int:
         print(f"figure {args.figure} ({Path(args.figure).stat().st_size / 1e3:.0f} KB)")
     if not args.no_card:
         folder = Path(args.weights)
-        (folder / "eval.json").write_text(json.dumps(ev, indent=1) + "\n")
+        (folder / "eval.json").write_text(json.dumps({**ev, "provenance": machine_record()}, indent=1) + "\n")
         write_card(folder, ev)
         print(f"eval.json and MODEL_CARD.md written in {folder}")
     print(f"total time {(time.perf_counter() - t0) / 60:.1f} min")

@@ -29,6 +29,7 @@ from tqdm import tqdm
 
 from freereg_lib.training.evaluate import bootstrap_ci, paired_permutation_p
 from freereg_lib.training.splits import guard_eval_seed
+from freereg_lib.training.provenance import machine_record
 
 CHAIN_VARIANTS = (("FreeReg-G", "kabsch"), ("FreeReg-G", "pnp"), ("FreeReg", "kabsch"), ("FreeReg", "pnp"))
 PAPER = {"FreeReg-G IR": 31.4, "FreeReg-G FMR": 90.7, "FreeReg-G RR (Kabsch)": 50.4}
@@ -228,7 +229,7 @@ def main(argv=None) -> int:
         old = json.loads(out.read_text()) if out.exists() else {}
         if {k: old.get(k) for k in ("n_pairs", "seed")} == {"n_pairs": args.pairs, "seed": args.seed}:
             result = {**old, **result}
-        out.write_text(json.dumps(result, indent=1) + "\n")
+        out.write_text(json.dumps({**result, "provenance": machine_record()}, indent=1) + "\n")
     return 0
 
 

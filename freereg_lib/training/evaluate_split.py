@@ -63,10 +63,10 @@ def load_features(path: Path):
 
 
 def run(split_name: str, n_pairs: int, rows_path: Path, shard: str = "0/1", weights_dir=None,
-        progress: bool = True, cache: Path | None = None) -> None:
+        progress: bool = True, cache: Path | None = None, ks=None) -> None:
     """Append the rows of the split's pairs ``k < n_pairs`` with ``k % n == i`` (``shard = "i/n"``)
-    not yet in ``rows_path``; with ``cache``, each pair's features are also saved there
-    (``<k>.npz``, for choices made on the development set without recomputing them)."""
+    not yet in ``rows_path`` (only those in ``ks`` when given); with ``cache``, each pair's features
+    are also saved there (``<k>.npz``, for choices made on the development set without recomputing them)."""
     from tqdm import tqdm
 
     from freereg_lib import pipeline
@@ -79,7 +79,7 @@ def run(split_name: str, n_pairs: int, rows_path: Path, shard: str = "0/1", weig
     cfg = FreeRegConfig(seed=split.noise_seed)
     backend = get_backend("micro", cfg, device="cpu", weights_dir=weights_dir)
     done = _done(rows_path)
-    todo = [k for k in range(n_pairs) if k % n == i and k not in done]
+    todo = [k for k in (range(n_pairs) if ks is None else ks) if k % n == i and k not in done]
     rows_path.parent.mkdir(parents=True, exist_ok=True)
     for k in tqdm(todo, desc=f"{split.name} split, shard {shard}", disable=not progress):
         seed = split.pair_seeds(k + 1)[k]
@@ -263,9 +263,12 @@ def stamped(res: dict) -> dict:
 
 
 def publish(res: dict, report_text: str, out: str | None) -> None:
-    """Print ``report_text`` and write ``res`` as JSON to ``out`` when given: the end of every
-    split command."""
+    """Print ``report_text`` and write ``res`` as JSON to ``out`` when given, with what produced it
+    (``provenance``: :func:`~freereg_lib.training.provenance.machine_record`): the end of every split command."""
+    from freereg_lib.training.provenance import machine_record
+
     print(report_text)
+    res.setdefault("provenance", machine_record())
     if out:
         Path(out).parent.mkdir(parents=True, exist_ok=True)
         Path(out).write_text(json.dumps(res, indent=1) + "\n")

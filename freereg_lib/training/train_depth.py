@@ -48,6 +48,7 @@ from tqdm import tqdm
 
 from freereg_lib.models.micro import depth as MD
 from freereg_lib.training.views import DEPTH_HW, RENDER_HW, load_or_render
+from freereg_lib.training.provenance import machine_record
 
 VAL_SCENES = 20
 SILOG_BETA = 0.15  # ZoeDepth's SILogLoss: Dg = Var(g) + beta * mean(g)^2 (beta = 1 - lambda, lambda = 0.85)
@@ -319,7 +320,7 @@ def main(argv=None) -> int:
                 f"{before}; then steps {log['continued_from']}-{log['steps']} continued with --init-from on "
                 f"{args.scenes} rooms x {args.views_per_scene} views, a fresh AdamW (warm-up {args.warmup}, "
                 f"cosine to 10 % over the {log['steps'] - log['continued_from']} new steps)")
-        Path(args.export, "training.json").write_text(json.dumps(facts) + "\n")
+        Path(args.export, "training.json").write_text(json.dumps({**facts, "provenance": machine_record()}) + "\n")
         print(f"weights written to {args.export}", flush=True)
     print(f"total time {seconds / 60:.1f} min", flush=True)
     return 0

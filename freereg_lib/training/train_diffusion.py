@@ -50,6 +50,7 @@ from tqdm import tqdm
 
 from freereg_lib.models.micro import diffusion as M
 from freereg_lib.training.views import load_or_render
+from freereg_lib.training.provenance import machine_record
 
 STAGES = ("vae", "unet", "controlnet")
 KL_WEIGHT = 1e-6  # SD's autoencoder (kl-f8): the KL weight against a per-image summed NLL
@@ -458,7 +459,7 @@ def export(models, logs: dict, args, out_dir: Path, seconds: float) -> None:
             + ("" if args.lr_schedule == "constant" else ", then a cosine to 0")
             + f"; the steps drew what an uninterrupted run draws); "
             f"the other stages kept."]))
-    (out_dir / "training.json").write_text(json.dumps(facts) + "\n")
+    (out_dir / "training.json").write_text(json.dumps({**facts, "provenance": machine_record()}) + "\n")
 
 
 def init_from(folder: Path) -> tuple[dict, dict]:
