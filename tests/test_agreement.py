@@ -1,0 +1,101 @@
+"""The check of this machine against the committed test split (freereg_lib.commands.agreement)."""
+from __future__ import annotations
+
+import copy
+import json
+from pathlib import Path
+
+import pytest
+
+from freereg_lib.commands import agreement
+from freereg_lib.models.micro.diffusion import WEIGHTS_DIR
+
+
+def _committed_path():
+    return Path(WEIGHTS_DIR) / "test_split.json"
+
+
+def test_sample_pairs_spreads_over_the_split():
+    assert agreement.sample_pairs(100, 10) == [0, 10, 20, 30, 40, 50, 60, 70, 80, 90]
+    assert agreement.sample_pairs(100, 3) == [0, 33, 66]
+    assert agreement.sample_pairs(5, 10) == [0, 1, 2, 3, 4]
+    with pytest.raises(agreement.AgreementError, match="--pairs must be at least 1"):
+        agreement.sample_pairs(100, 0)
+
+
+def _hand_made():
+    variants = agreement.VARIANTS
+    committed = {"n_pairs": 2, "results": {f"{m} {s}": {"IR_per_pair": [0.10, 0.20], "registered_per_pair": [0, 1]}
+                                           for m, s in variants}}
+    rec = {"k": 1, "pair": "p1", "rows": [{"method": m, "solver": s, "IR": 0.20, "registered": True} for m, s in variants]}
+    return committed, rec
+
+
+def test_compare_pair_names_each_kind_of_difference():
+    committed, rec = _hand_made()
+    assert agreement.compare_pair(committed, rec)["status"] == "identical"
+    rec["rows"][0]["IR"] = 0.21  # within the tolerance of 0.02
+    assert agreement.compare_pair(committed, rec)["status"] == "close"
+    rec["rows"][1]["IR"] = 0.30
+    out = agreement.compare_pair(committed, rec)
+    assert out["status"] == "differs"
+    assert [f["status"] for f in out["fields"].values()][:3] == ["close", "differs", "identical"]
+    rec["rows"][2]["registered"] = False
+    out = agreement.compare_pair(committed, rec)
+    assert out["status"] == "flipped"
+    assert list(out["fields"].values())[2] == {"IR_committed": 0.20, "IR_here": 0.20, "registered_committed": 1,
+                                                "registered_here": 0, "status": "flipped"}
+
+
+def test_verdict_class():
+    assert agreement.verdict_class(0.0, 1.0) == "level"
+    assert agreement.verdict_class(3.0, 0.01) == "above, significant"
+    assert agreement.verdict_class(-3.0, 0.2) == "below, not significant"
+
+
+def test_a_committed_file_the_check_cannot_use_is_named(tmp_path):
+    bad = tmp_path / "split.json"
+    with pytest.raises(agreement.AgreementError, match="split.json: cannot read"):
+        agreement.load_committed(bad)
+    res = json.loads(_committed_path().read_text())
+    res["results"]["FreeReg pnp"]["IR_per_pair"] = res["results"]["FreeReg pnp"]["IR_per_pair"][:-1]
+    bad.write_text(json.dumps(res))
+    with pytest.raises(agreement.AgreementError, match=r"results\['FreeReg pnp'\] needs IR_per_pair"):
+        agreement.load_committed(bad)
+
+
+@pytest.fixture(scope="module")
+def three_pairs(tmp_path_factory):
+    """The check on 3 committed pairs (0, 33, 66), recomputed once on this machine (about 30 s)."""
+    out = tmp_path_factory.mktemp("agreement")
+    status = agreement.main(["--pairs", "3", "--out", str(out)])
+    return out, status, json.loads((out / "agreement.json").read_text())
+
+
+def test_the_check_runs_on_three_committed_pairs(three_pairs, capsys):
+    out, status, result = three_pairs
+    assert result["pairs_checked"] == [0, 33, 66]
+    assert len(result["verdicts"]) == 9
+    assert result["summary"].startswith("this machine reproduces the committed results: ")
+    # Three pairs of 100 cannot turn a verdict whose p is far from 5 %.
+    assert result["verdicts"]["IR: FreeReg - FreeReg-G"]["unchanged"]
+    assert status == (0 if all(v["unchanged"] for v in result["verdicts"].values()) else 1)
+    assert (out / "agreement.md").read_text().count("| synthetic-indoor/seed") == 3
+
+
+def test_the_check_fails_when_a_committed_row_is_altered(three_pairs, tmp_path):
+    out, _, result = three_pairs
+    here = {p["k"]: p["fields"] for p in result["pairs"]}
+    committed = json.loads(_committed_path().read_text())
+    altered = copy.deepcopy(committed)
+    # Pair 33: a registered outcome the opposite of this machine's; pair 66: an IR far from it.
+    altered["results"]["FreeReg kabsch"]["registered_per_pair"][33] = 1 - here[33]["FreeReg kabsch"]["registered_here"]
+    altered["results"]["FreeReg-D pnp"]["IR_per_pair"][66] = here[66]["FreeReg-D pnp"]["IR_here"] + 0.5
+    path = tmp_path / "altered.json"
+    path.write_text(json.dumps(altered))
+    agreement.main(["--pairs", "3", "--out", str(out), "--committed", str(path)])  # resumes: no pair recomputed
+    again = {p["k"]: p for p in json.loads((out / "agreement.json").read_text())["pairs"]}
+    assert again[33]["status"] == "flipped"
+    assert again[33]["fields"]["FreeReg kabsch"]["status"] == "flipped"
+    assert again[66]["fields"]["FreeReg-D pnp"]["status"] in ("differs", "flipped")
+    assert again[0]["status"] == next(p for p in result["pairs"] if p["k"] == 0)["status"]  # pair 0 untouched
