@@ -2,11 +2,14 @@
 
 Sphinx + myst-nb + sphinx-book-theme, the Jupyter Book 1 stack, built offline: the notebooks are rendered
 from their stored outputs, MathJax comes from the pinned package django-static-mathjax and is copied
-into the site, and nothing is loaded from a network. Nitpicky: a cross-reference that leads nowhere is
-a warning, and the build turns warnings into errors.
+into the site, and nothing is loaded from a network. A notebook's printed lines wrap inside their box
+(_static/freereg.css); the search page carries every page's text for its excerpts (see _page_texts).
+Nitpicky: a cross-reference that leads nowhere is a warning, and the build turns warnings into errors.
 """
 from __future__ import annotations
 
+import json
+import re
 import shutil
 from pathlib import Path
 
@@ -138,6 +141,43 @@ def _resolve_reexport(app, env, node, contnode):
     return None
 
 
+# Search excerpts offline: Sphinx's search loads each result's page with fetch() to cut its excerpt, which
+# browsers refuse on file://. Every page's text goes into _static/freereg_page_texts.js, and the search page
+# loads it with _static/freereg_search_offline.js, which answers those fetches from it on file://.
+PAGE_TEXTS_JS = "freereg_page_texts.js"
+_page_texts: dict[str, str] = {}  # docname -> its text, as _searchable makes it
+_DROP = re.compile(r'<(script|style)\b.*?</\1>|<a class="headerlink"[^>]*>.*?</a>', re.S)
+_INLINE_TAG = re.compile(r"</?(a|em|strong|code|span|sub|sup|b|i|abbr|cite|var|kbd|samp|mark|small)\b[^>]*>")
+_SECTION = re.compile(r"<section\b[^>]*?\sid=\"([^\"]*)\"[^>]*>")
+
+
+def _searchable(body: str) -> str:
+    """A page body reduced to its text and its sections (with their ids: a result's anchor names one)."""
+    text = _INLINE_TAG.sub("", _DROP.sub("", body))
+    text = _SECTION.sub(lambda m: f'\x00section id="{m.group(1)}"\x01', text).replace("</section>", "\x00/section\x01")
+    text = re.sub(r"\s+", " ", re.sub(r"<[^>]*>", " ", text))
+    return '<div role="main">' + text.replace("\x00", "<").replace("\x01", ">") + "</div>"
+
+
+def _collect_page_text(app, pagename, templatename, context, doctree) -> None:
+    if app.builder.format != "html":
+        return
+    if pagename == "search":
+        app.add_js_file(PAGE_TEXTS_JS)
+        app.add_js_file("freereg_search_offline.js")
+    elif doctree is not None and context.get("body"):
+        _page_texts[pagename] = _searchable(context["body"])
+
+
+def _write_page_texts(app, exception) -> None:
+    if exception is not None or app.builder.format != "html":
+        return
+    out = Path(app.outdir) / "_static" / PAGE_TEXTS_JS
+    out.write_text("window.FREEREG_PAGE_TEXTS = " + json.dumps(_page_texts, sort_keys=True) + ";\n", encoding="utf-8")
+
+
 def setup(app) -> None:
     app.connect("build-finished", _copy_mathjax)
+    app.connect("html-page-context", _collect_page_text)
+    app.connect("build-finished", _write_page_texts)
     app.connect("missing-reference", _resolve_reexport)
