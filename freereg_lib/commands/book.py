@@ -5,14 +5,16 @@
 sphinx-book-theme (the Jupyter Book 1 stack; ``book/conf.py`` holds the configuration). The build
 needs no network: the notebooks are rendered from their stored outputs (nothing is executed), the
 math by the MathJax the pinned package ``django-static-mathjax`` ships, copied into the site, and
-the search index is Sphinx's own. It runs in nitpicky mode with warnings as errors, so a
+the search index is Sphinx's own, with every page's text beside it so that its excerpts work from
+``file://`` too (``book/conf.py``). It runs in nitpicky mode with warnings as errors, so a
 cross-reference of a docstring that leads nowhere, a link between pages to a missing heading or a
 notebook whose section a paper float names is gone fails the build, naming it.
 
 The sources are laid out in ``<run>/book_src`` (the repository's paths, so the pages' relative links
 work as on GitHub): ``index.md`` (the notebooks with their backends and :data:`PAPER_FLOATS`, every
 paper float the companion re-draws mapped to its notebook section and figure), the executed
-notebooks under ``notebooks/`` (each with a first line naming its backend), ``docs/``, the
+notebooks under ``notebooks/`` (each with a first line naming its backend, and this machine's absolute
+paths, such as papermill's injected ``out_dir``, shown relative: :func:`machine_paths`), ``docs/``, the
 benchmarks' results, the teacher's guide, the model cards, and ``api/``: one page per topic of the
 method layers (:data:`API_TOPICS`), made by autodoc from the docstrings.
 
@@ -57,8 +59,9 @@ def _not_rerun(number: str, shows: str, reason: str) -> PaperFloat:
     return PaperFloat(number, shows, "", "", (), reason)
 
 
-# Every float of the paper, in its order (the numbering of the ICLR 2024 paper and its appendix): the
-# section that re-draws it, or why none does. :func:`unmapped_floats` checks it against the paper's list.
+# Every float of the paper, in the paper's order (its list of floats, freereg_lib/data/paper_floats.csv:
+# Figs. 1-10, then Tables 1-13, the appendix's numbered after the main text's): the section that re-draws it,
+# or why none does. :func:`unmapped_floats` checks it against the paper's list, :func:`out_of_order` its order.
 PAPER_FLOATS: tuple[PaperFloat, ...] = (
     _not_rerun("Fig. 1", "teaser", "a drawing of the idea, no measurement; notebook 00, section 1 states the task"),
     PaperFloat("Fig. 2-I", "images generated from one depth map (the idea, panel I)", "01_diffusion_features",
@@ -71,15 +74,21 @@ PAPER_FLOATS: tuple[PaperFloat, ...] = (
                ("03_features_diffusion", "03_features_geometric", "03_features_fused")),
     PaperFloat("Fig. 5 e-g", "fused features: D / G / fused matches", "03_fusion",
                "3. Correspondences from D, G and fused features", ("03_matches_d_g_fused",)),
-    PaperFloat("Fig. 7", "rotation and translation error curves (appendix)", "04_benchmark",
-               "5. Rotation and translation error curves", ("04_rotation_error_curves", "04_translation_error_curves")),
     PaperFloat("Fig. 6", "qualitative correspondences on real frames (ICL-NUIM)", "07_paper_figures",
                "4. Successes and failures on real frames", ("07_icl_outcomes",)),
+    PaperFloat("Fig. 7", "rotation and translation error curves (appendix)", "04_benchmark",
+               "5. Rotation and translation error curves", ("04_rotation_error_curves", "04_translation_error_curves")),
+    PaperFloat("Fig. 8", "semantic properties of the features on the cloud (appendix)", "07_paper_figures",
+               "2. Features on the cloud", ("07_cloud_features",)),
+    PaperFloat("Fig. 9", "additional qualitative results: feature maps and matches (appendix)", "07_paper_figures",
+               "4. Successes and failures on real frames", ("07_icl_outcomes",)),
+    PaperFloat("Fig. 10", "patch warping: image patches moved by the matches (appendix)", "07_paper_figures",
+               "3. Patches warped by the matches", ("07_patch_warp",)),
     PaperFloat("Table 1", "main results, beside the re-run", "04_benchmark", "3. Table 1 beside the paper's",
                ("04_table1_side_by_side",)),
     PaperFloat("Table 2", "layer selection", "01_diffusion_features", "5. Which layers?",
                ("01_table2_ir", "01_table2_in")),
-    PaperFloat("Table 3", "diffusion step t_hat", "01_diffusion_features", "6. Which diffusion step",
+    PaperFloat("Table 3", r"diffusion step $\hat t$", "01_diffusion_features", "6. Which diffusion step",
                ("01_table3_t_hat",)),
     PaperFloat("Table 4", "fusion weight w", "03_fusion", "4. The fusion weight", ("03_table4_fusion_weight",)),
     PaperFloat("Table 5", "RGBD-Scenes-v2 under 2D3D-MATR's protocol, coarse-to-fine matches (appendix)",
@@ -104,12 +113,6 @@ PAPER_FLOATS: tuple[PaperFloat, ...] = (
                "score zero"),
     PaperFloat("Table 13", "DDIM iterations: faster features (appendix)", "06_appendix", "3. The verdict",
                ("06_table13_ddim",)),
-    PaperFloat("Fig. 8", "semantic properties of the features on the cloud (appendix)", "07_paper_figures",
-               "2. Features on the cloud", ("07_cloud_features",)),
-    PaperFloat("Fig. 9", "additional qualitative results: feature maps and matches (appendix)", "07_paper_figures",
-               "4. Successes and failures on real frames", ("07_icl_outcomes",)),
-    PaperFloat("Fig. 10", "patch warping: image patches moved by the matches (appendix)", "07_paper_figures",
-               "3. Patches warped by the matches", ("07_patch_warp",)),
 )
 
 
@@ -129,6 +132,22 @@ def unmapped_floats(rows: Iterable[PaperFloat] = PAPER_FLOATS) -> list[str]:
     named = {float_number(f.number) for f in rows}
     return ([f"{n}: no section and no reason" for n in listed if n not in covered]
             + [f"{n}: not a float of the paper" for n in sorted(named - set(listed))])
+
+
+def out_of_order(rows: Iterable[PaperFloat] = PAPER_FLOATS) -> list[str]:
+    """The rows of ``rows`` that come before a float the paper lists earlier (its list:
+    ``freereg_lib/data/paper_floats.csv``), as ``"Fig. 7 before Fig. 6"``; [] when in the paper's order."""
+    rank = {n: k for k, n in enumerate(paper.floats()["number"])}
+    seen: list[str] = []
+    out = []
+    for f in rows:
+        n = float_number(f.number)
+        later = [m for m in seen if rank.get(m, -1) > rank.get(n, -1)]
+        if later:
+            out.append(f"{later[0]} before {n}")
+        seen.append(n)
+    return out
+
 
 BACKEND_NOTES = {
     "micro": "Miniature SD-layout models trained in this repository on synthetic rooms: a learned miniature of "
@@ -247,6 +266,53 @@ def _fill_missing_glue(nb: dict, why: str) -> set[str]:
     return missing
 
 
+def machine_paths(run_dir: Path) -> list[tuple[re.Pattern, str]]:
+    """The absolute paths of this machine a page must not show, each with what it shows instead: the run
+    folder as the path a reader types in the project folder (``runs/reproduce``; its name when it lies
+    elsewhere), the project folder as a relative path, the home folder as ``~``. Longest first, so that
+    the run folder inside the project folder is rewritten as a whole."""
+    root, run = ROOT.resolve(), Path(run_dir).resolve()
+    shown_run = run.relative_to(root).as_posix() if run.is_relative_to(root) else run.name
+    places = [(run, shown_run), (Path(run_dir).absolute(), shown_run), (root, "."), (ROOT.absolute(), ".")]
+    home = Path.home()
+    if len(home.parts) > 1:  # a home of "/" would be every path
+        places += [(home.resolve(), "~"), (home.absolute(), "~")]
+    out, seen = [], set()
+    for path, shown in sorted(places, key=lambda p: -len(str(p[0]))):
+        if str(path) not in seen and len(path.parts) > 1:
+            seen.add(str(path))
+            # "/work/main/runs" -> "runs", "/work/main" -> "."; never a longer name ("/work/mainline")
+            out.append((re.compile(re.escape(str(path)) + r"(/|(?![\w.-]))"), shown))
+    return out
+
+
+def _relative_paths(nb: dict, places: list[tuple[re.Pattern, str]]) -> None:
+    """Rewrite, in ``nb``'s sources and printed outputs, the machine's absolute paths (:func:`machine_paths`):
+    papermill injects ``out_dir`` as an absolute path, and tracebacks and printed file names carry them."""
+
+    def fix(text):
+        if isinstance(text, list):
+            return [fix(t) for t in text]
+        if not isinstance(text, str):
+            return text
+        for pattern, shown in places:  # "<root>/x" -> "x", "<root>" -> ".", "<run>/x" -> "runs/reproduce/x"
+            text = pattern.sub(lambda m: "" if shown == "." and m.group(1) else shown + m.group(1), text)
+        return text
+
+    for cell in nb["cells"]:
+        cell["source"] = fix(cell["source"])
+        if "injected-parameters" in cell.get("metadata", {}).get("tags", []):
+            cell["source"] = re.sub(r"^# Parameters\n", "# Parameters injected by papermill (paths shown relative, "
+                                    "not as on the machine that ran it)\n", "".join(cell["source"]))
+        for out in cell.get("outputs", []):
+            for key in ("text", "traceback", "evalue"):
+                if key in out:
+                    out[key] = fix(out[key])
+            for mime, value in out.get("data", {}).items():
+                if mime.startswith("text/") or mime in ("application/json", "image/svg+xml"):
+                    out["data"][mime] = fix(value)
+
+
 def stage_notebooks(run_dir: Path, src: Path) -> list[NotebookPage]:
     """Copy the run's executed notebooks into ``src/notebooks``, each with a line naming its backend."""
 
@@ -254,7 +320,7 @@ def stage_notebooks(run_dir: Path, src: Path) -> list[NotebookPage]:
     if not paths:
         raise BookError(f"{run_dir}: no executed notebook (NN_*.ipynb); run `make reproduce` first")
     (src / "notebooks").mkdir(parents=True, exist_ok=True)
-    pages = []
+    pages, places = [], machine_paths(run_dir)
     for path in paths:
         nb = json.loads(path.read_text(encoding="utf-8"))
         heads = _headings(nb)
@@ -263,6 +329,7 @@ def stage_notebooks(run_dir: Path, src: Path) -> list[NotebookPage]:
         line = (f"**Backend: {backend}.** {BACKEND_NOTES.get(backend, 'See the README, Backends.')}"
                 + (" **This run of the notebook failed**: the page shows the error." if failed else ""))
         missing = _fill_missing_glue(nb, "failed before it" if failed else "did not reach it")
+        _relative_paths(nb, places)
         if missing and not failed:
             print(f"{path.name}: no value glued for {', '.join(sorted(missing))}; the page says so", file=sys.stderr)
         cell = {"cell_type": "markdown", "metadata": {"tags": ["freereg-backend"]}, "source": line, "id": "freereg-backend"}
@@ -291,7 +358,7 @@ def _float_rows(pages: list[NotebookPage], figures_dir: Path, src: Path) -> list
             if head is None:
                 raise BookError(f"{f.number} ({f.shows}): no heading starting {f.section!r} in "
                                 f"{f.notebook}.ipynb; its headings: {[t for _, t in page.headings]}")
-            label = head.replace("$", "").replace("|", "\\|").replace("[", "").replace("]", "")
+            label = head.replace("|", "\\|").replace("[", "").replace("]", "")  # its math stays math: typeset
             slug = github_slugify(re.sub(r"\$[^$]*\$", "", head))  # myst leaves math out of the anchor
             where = f"[{f.notebook[:2]} · {label}](notebooks/{f.notebook}.ipynb#{slug})"
         thumbs = []
@@ -363,6 +430,8 @@ def write_index(src: Path, pages: list[NotebookPage], figures_dir: Path, docs: l
     unmapped = unmapped_floats()
     if unmapped:
         raise BookError("the index of the paper's floats is incomplete: " + "; ".join(unmapped))
+    if out_of_order():
+        raise BookError("the index of the paper's floats is not in the paper's order: " + "; ".join(out_of_order()))
     float_rows = ["| paper | what it shows | notebook section | figure of this run |", "|---|---|---|---|"]
     float_rows += _float_rows(pages, figures_dir, src)
     redrawn = sorted({float_number(f.number) for f in PAPER_FLOATS if not f.reason})
