@@ -105,3 +105,101 @@ def test_a_site_the_book_built_is_rebuilt_and_an_empty_folder_used(run, tmp_path
     (site / "stale.html").write_text("from the last build")
     B.build_book(run, site)  # the book's own site: emptied and rebuilt
     assert not (site / "stale.html").exists() and (site / "index.html").is_file()
+
+
+# --- the training commands: rows files and weights folders, checked before any pair runs ------------------
+
+import json  # noqa: E402
+
+from freereg_lib.training import command_inputs as CI  # noqa: E402
+from freereg_lib.training import evaluate_finetune as EF  # noqa: E402
+from freereg_lib.training import evaluate_mono as EM  # noqa: E402
+from freereg_lib.training import evaluate_rgbd_v2 as ER  # noqa: E402
+from freereg_lib.training import finetune_controlnet as FC  # noqa: E402
+from freereg_lib.training import other_backbones as OB  # noqa: E402
+from freereg_lib.training.splits import SPLITS  # noqa: E402
+
+
+def _mono_rows(path: Path, split: str = "test", n: int = 2, cut: bool = False) -> Path:
+    recs = [{"k": k, "pair_seed": SPLITS[split].pair_seeds(k + 1)[k], "rows": [{"modality": "RGB", "solver": "pnp"}]}
+            for k in range(n)]
+    text = "".join(json.dumps(r) + "\n" for r in recs)
+    path.write_text(text[:-25] if cut else text)
+    return path
+
+
+def _exit_2(main, argv, capsys, monkeypatch, module) -> str:
+    """The one error line (after argparse's usage lines, where the command uses ``parser.error``)."""
+    monkeypatch.setattr(module, "run", lambda *a, **k: pytest.fail("a pair started"))
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "Traceback" not in err, err
+    last = err.splitlines()[-1]
+    assert err.count("\n") == 1 or "error: " in last, err
+    return last.split("error: ", 1)[-1] + "\n"
+
+
+@pytest.mark.parametrize("module, name", [(EM, "evaluate_mono"), (ER, "evaluate_rgbd_v2"), (OB, "other_backbones")])
+def test_rows_naming_a_folder_is_one_line_before_any_pair(tmp_path, capsys, monkeypatch, module, name):
+    err = _exit_2(module.main, ["--rows", str(tmp_path), "--pairs", "1"], capsys, monkeypatch, module)
+    assert err.startswith(f"{name}: --rows {tmp_path}: a folder; expected a rows file"), err
+
+
+@pytest.mark.parametrize("module", [EM, ER, OB])
+def test_rows_in_a_read_only_folder_is_one_line_before_any_pair(tmp_path, capsys, monkeypatch, module):
+    def read_only(folder):  # as root, chmod does not stop writes: a read-only mount's error, simulated
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    monkeypatch.setattr(CI, "_probe_write", read_only)
+    err = _exit_2(module.main, ["--rows", str(tmp_path / "r.jsonl"), "--pairs", "1"], capsys, monkeypatch, module)
+    assert f"cannot write in {tmp_path} (Read-only file system)" in err
+
+
+def test_a_rows_file_whose_last_line_is_cut_is_named(tmp_path, capsys, monkeypatch):
+    rows = _mono_rows(tmp_path / "r.jsonl", cut=True)
+    err = _exit_2(EM.main, ["--rows", str(rows), "--pairs", "3"], capsys, monkeypatch, EM)
+    assert f"--rows {rows}, line 2: cut off (a run stopped while writing it)" in err
+
+
+def test_summarize_on_another_commands_rows_is_named(tmp_path, capsys, monkeypatch):
+    rows = _mono_rows(tmp_path / "mono.jsonl")
+    err = _exit_2(OB.main, ["--summarize", "--rows", str(rows)], capsys, monkeypatch, OB)
+    assert f"--rows {rows}, line 1: not a row of other_backbones" in err
+
+
+def test_summarize_of_another_splits_rows_is_refused(tmp_path, capsys, monkeypatch):
+    rows = _mono_rows(tmp_path / "test.jsonl", split="test")
+    err = _exit_2(EM.main, ["--summarize", "--split", "dev", "--rows", str(rows)], capsys, monkeypatch, EM)
+    assert "not the development split's" in err and "these are the test split's rows, pass --split test" in err
+
+
+def _weights(tmp_path: Path) -> Path:
+    from safetensors.numpy import save_file
+
+    from freereg_lib.models import weightcheck
+
+    folder = tmp_path / "finetuned"
+    (folder / "controlnet").mkdir(parents=True)
+    (folder / "training.json").write_text(json.dumps({"stages": {"controlnet": {"loss": [1.0]}}}))
+    save_file({"w": __import__("numpy").arange(64, dtype="float32")}, folder / "controlnet" / "model.safetensors")
+    weightcheck.write_manifest(folder / "controlnet")
+    data = bytearray((folder / "controlnet" / "model.safetensors").read_bytes())
+    data[-3] ^= 0x10  # one bit of one weight
+    (folder / "controlnet" / "model.safetensors").write_bytes(bytes(data))
+    return folder
+
+
+def test_evaluate_finetune_refuses_bit_flipped_weights(tmp_path, capsys, monkeypatch):
+    weights = _weights(tmp_path)
+    err = _exit_2(EF.main, ["--model", "finetuned", "--weights", str(weights), "--rows", str(tmp_path / "r.jsonl")],
+                  capsys, monkeypatch, EF)
+    assert "model.safetensors does not match its checksum" in err and not (tmp_path / "r.jsonl").exists()
+
+
+def test_finetune_init_from_a_damaged_folder_is_one_line(tmp_path, capsys):
+    weights = _weights(tmp_path)
+    with pytest.raises(SystemExit) as info:
+        FC.parse_args(["--init-from", str(weights), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "does not match its checksum" in err and "Traceback" not in err

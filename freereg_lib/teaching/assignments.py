@@ -9,7 +9,8 @@
 * ``grade PATH [...] [--roster roster.csv] [--out grades]`` grades each student: the solution
   code of each exercise runs in a confined process with NumPy and the standard library only;
   this process alone computes the library's answers and scores. ``grades.csv`` and one
-  feedback file per student go to ``--out``. Exit code 0 whatever the students did.
+  feedback file per student go to ``--out``, with ``canvas.csv`` for an LMS. Exit code 0
+  whatever the students did; 2 (one line, before any grading) for ids it cannot tell apart.
 * ``list`` prints the exercises.
 
 ``assignments/README.md`` is the teacher's guide.
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from freereg_lib.teaching import gradebook, grader, handout
 from freereg_lib.teaching.check import exercise_check  # noqa: F401 - the check cells import it from here
@@ -47,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     p_grade.add_argument("--timeout", type=float, default=grader.CASE_TIMEOUT_S,
                          help="seconds allowed per call of a student's function (default 30)")
     p_grade.add_argument("--limit", type=float, default=grader.STUDENT_LIMIT_S,
-                         help="hard limit in seconds for one student's process (default 600)")
+                         help="hard limit in seconds for each exercise of a student (default 120)")
     p_grade.add_argument("--memory-mb", type=int, default=grader.MEMORY_MB,
                          help="address-space limit of one student's process in MiB (default 4096)")
     p_grade.add_argument("--seed", type=int, default=None, help="the inputs' seed (default: new each run)")
@@ -64,13 +66,24 @@ def main(argv: list[str] | None = None) -> int:
     elif args.command == "dist":
         print(f"student handout: {handout.dist(args.out, args.notebooks, zip_file=args.zip)}")
     elif args.command == "collect":
-        for sid, names in gradebook.collect(args.returned, args.out).items():
+        try:
+            collected = gradebook.collect(args.returned, args.out)
+        except (gradebook.IdError, OSError) as exc:  # before anything is written: one line, exit 2
+            print(f"collect: {exc}", file=sys.stderr)
+            return 2
+        for sid, names in collected.items():
             print(f"{sid}: {len(names)} notebook(s){': ' + ', '.join(names) if names else ''}")
+            for note in gradebook.duplicates(Path(args.out) / sid):
+                print(f"  note: {note}")
     elif args.command == "list":
         print(exercise_table())
     else:
-        gradebook.grade_all(args.paths, args.out, args.roster, args.seed, args.timeout, args.limit,
-                            args.memory_mb, verbose=args.verbose)
+        try:
+            gradebook.grade_all(args.paths, args.out, args.roster, args.seed, args.timeout, args.limit,
+                                args.memory_mb, verbose=args.verbose)
+        except (gradebook.IdError, ValueError, OSError) as exc:  # the ids and the roster, checked before grading
+            print(f"grade: {exc}", file=sys.stderr)
+            return 2
     return 0
 
 

@@ -273,6 +273,8 @@ def make(out: str | Path = DEFAULT_OUT, notebooks: str | Path = NOTEBOOKS,
         written.append(out / path.name)
         if key is not None:
             Path(key).mkdir(parents=True, exist_ok=True)
+            if not (Path(key) / ".gitignore").exists():  # a `git add -A` must not commit the answer key
+                (Path(key) / ".gitignore").write_text("# The answer key: never commit it.\n*\n", encoding="utf-8")
             answer = copy.deepcopy(nb)
             _strip(answer)
             nbformat.write(answer, str(Path(key) / path.name))

@@ -2,7 +2,7 @@
 
 * :func:`limit` (in the student's process, before any student code): ``RLIMIT_AS`` (memory),
   ``RLIMIT_CPU``, ``RLIMIT_FSIZE`` (largest file written), no core dumps, and a cap on new
-  processes.
+  processes. As root, the grader starts it as an unprivileged user (:func:`student_ids`).
 * :func:`confine`: Linux Landlock (kernel 5.13+, no privileges needed), also before any
   student code: reading only the Python standard library, NumPy and the system's libraries
   (not ``freereg_lib``, the project's notebooks, answer keys or anything else of yours),
@@ -152,15 +152,87 @@ def _stat(pid: int) -> tuple[int, int, int] | None:
     return int(fields[1]), int(fields[2]), int(fields[3])
 
 
-def _user_pids() -> list[int]:
-    uid = os.getuid()
+STUDENT_USER = "nobody"  # who runs the students' code when the grader runs as root
+
+
+def _can_run_python(uid: int, gid: int) -> bool:
+    """Whether ``uid`` can start this Python and import NumPy (a Python under /root cannot be run by others)."""
+    import subprocess
+
+    import numpy
+
+    site = os.path.dirname(os.path.dirname(os.path.realpath(numpy.__file__)))
+    try:
+        return subprocess.run([sys.executable, "-I", "-S", "-c", f"import sys; sys.path[:0] = [{site!r}]; import numpy"],
+                              user=uid, group=gid, extra_groups=[], cwd="/", env={"PATH": "/usr/bin:/bin"},
+                              stdin=subprocess.DEVNULL, capture_output=True, timeout=60).returncode == 0
+    except (OSError, subprocess.SubprocessError):
+        return False
+
+
+_IDS: dict[str, tuple[int, int] | None] = {}
+
+
+def student_ids() -> tuple[int, int] | None:
+    """``(uid, gid)`` the student's process runs as when the grader is root: :data:`STUDENT_USER`'s,
+    where that user can run this Python (checked once). None when the grader is not root, or when
+    no such user can run it: then the student's process, still uid 0, drops every capability itself
+    (:func:`drop_capabilities`) and its Landlock rules leave out root's files (``/etc/shadow``, other
+    processes' ``/proc`` entries), so it can read no more than an unprivileged user could."""
+    if not hasattr(os, "geteuid") or os.geteuid() != 0:
+        return None
+    if "ids" not in _IDS:
+        import pwd
+
+        try:
+            entry = pwd.getpwnam(STUDENT_USER)
+            ids = (entry.pw_uid, entry.pw_gid)
+        except KeyError:
+            ids = None
+        _IDS["ids"] = ids if ids and _can_run_python(*ids) else None
+    return _IDS["ids"]
+
+
+_PR_CAPBSET_DROP, _CAP_VERSION_3 = 24, 0x20080522
+
+
+def drop_capabilities() -> bool:
+    """Drop every capability of this process for good (bounding set, effective, permitted, inheritable):
+    uid 0 without them cannot load kernel modules, use raw sockets, override file permissions or
+    trace others. True when the process holds none afterwards."""
+    libc = _libc()
+    for cap in range(64):
+        libc.prctl(_PR_CAPBSET_DROP, cap, 0, 0, 0)  # fails (EINVAL) past the last capability: fine
+
+    class Header(ctypes.Structure):
+        _fields_ = [("version", ctypes.c_uint32), ("pid", ctypes.c_int)]
+
+    class Data(ctypes.Structure):
+        _fields_ = [("effective", ctypes.c_uint32), ("permitted", ctypes.c_uint32), ("inheritable", ctypes.c_uint32)]
+
+    data = (Data * 2)()
+    if libc.capset(ctypes.byref(Header(_CAP_VERSION_3, 0)), data) != 0:
+        return False
+    with contextlib.suppress(OSError):
+        status = Path("/proc/self/status").read_text()
+        return all(int(line.split()[1], 16) == 0 for line in status.splitlines()
+                   if line.startswith(("CapEff:", "CapPrm:", "CapBnd:")))
+    return True
+
+
+def _user_pids(uids: set[int] | None = None) -> list[int]:
+    """The live processes of ``uids`` (default: this process's user and, as root, the students' user)."""
+    if uids is None:
+        uids = {os.getuid()}
+        if os.getuid() == 0:
+            uids |= {ids[0]} if (ids := student_ids()) else set()
     pids = []
     if not os.path.isdir("/proc"):  # no /proc (macOS): the session and group kill are what there is
         return pids
     for entry in os.listdir("/proc"):
         if entry.isdigit():
             with contextlib.suppress(OSError):
-                if os.stat(f"/proc/{entry}").st_uid == uid:
+                if os.stat(f"/proc/{entry}").st_uid in uids:
                     pids.append(int(entry))
     return pids
 

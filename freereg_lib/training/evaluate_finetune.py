@@ -209,6 +209,12 @@ def main(argv=None) -> int:
         p.error("--weights is needed for the fine-tuned model and for --summarize")
     if args.weights and not Path(args.weights, "controlnet").is_dir():
         p.error(f"--weights {args.weights}: no controlnet/ folder there (finetune_controlnet --export)")
+    from freereg_lib.training.command_inputs import rows_fault, weights_fault
+
+    if args.weights and (fault := weights_fault(args.weights)):  # as finetune_controlnet checks it: SHA256SUMS
+        p.error(f"--weights {args.weights}: {fault}")
+    if not args.summarize and (fault := rows_fault(args.rows[0], "evaluate_finetune", "solver", writing=True)):
+        p.error(fault)
     if not args.summarize:
         if len(args.rows) != 1:
             p.error("--rows: one file when running a model (several only with --summarize)")

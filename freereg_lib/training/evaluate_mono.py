@@ -276,6 +276,9 @@ def report(res: dict) -> str:
 
 
 def main(argv=None) -> int:
+    from freereg_lib.training.command_inputs import exit_on_bad_rows
+
+    exit_on_bad_rows(argv, "evaluate_mono", "modality")  # one line, exit 2, before any pair runs
     return split_command("freereg_lib.training.evaluate_mono", __doc__, run, summarize, report, argv)
 
 

@@ -214,6 +214,9 @@ def report(res: dict) -> str:
 
 
 def main(argv=None) -> int:
+    from freereg_lib.training.command_inputs import exit_on_bad_rows
+
+    exit_on_bad_rows(argv, "evaluate_rgbd_v2", "reachable")  # one line, exit 2, before any pair runs
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--split", default="test", choices=sorted(SPLITS))
     p.add_argument("--pairs", type=int, default=100)

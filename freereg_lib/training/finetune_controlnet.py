@@ -116,6 +116,10 @@ def parse_args(argv=None) -> argparse.Namespace:
         p.error("--lr and --far-m must be > 0; --noise-scale, --edge-px and --blobs >= 0")
     if not Path(args.init_from, "training.json").exists():
         p.error(f"--init-from {args.init_from}: no training.json there (an exported weights folder)")
+    from freereg_lib.training.command_inputs import weights_fault
+
+    if fault := weights_fault(args.init_from):  # before any view is rendered: one line, exit 2
+        p.error(f"--init-from {args.init_from}: {fault}")
     return args
 
 

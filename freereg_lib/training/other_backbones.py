@@ -386,6 +386,9 @@ def report(res: dict) -> str:
 
 
 def main(argv=None) -> int:
+    from freereg_lib.training.command_inputs import exit_on_bad_rows
+
+    exit_on_bad_rows(argv, "other_backbones", "row")  # one line, exit 2, before any pair runs
     return split_command("freereg_lib.training.other_backbones", __doc__, run, summarize, report, argv)
 
 
