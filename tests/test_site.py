@@ -2,17 +2,22 @@
 opened in headless Chromium without a network.
 
 The small run: the notebooks copied unexecuted into a run folder, notebook 00 given outputs made here
-(a figure, a wide table, a progress bar on stderr) so the test needs no kernel and stays under a
-minute. ``python -m freereg_lib.commands.book`` builds it, and:
+(a figure, a wide table, a progress bar on stderr, a verdict line far wider than the page, this
+machine's paths as papermill's injected ``out_dir`` and printed file names) so the test needs no
+kernel and stays under a minute. ``python -m freereg_lib.commands.book`` builds it, and:
 
-* the index maps every paper float to its notebook section (a link to an id of that page) and names
-  its figure; no link or image of any page leads nowhere, none leaves the site, none needs a network;
-* every notebook page names its backend; stderr is not on the page;
+* the index maps every paper float, in the paper's order, to a notebook section whose heading names
+  the float (a link to an id of that page) and names its figure; no link or image of any page leads
+  nowhere, none leaves the site, none needs a network;
+* every notebook page names its backend; stderr is not on the page; no page shows an absolute path
+  of this machine (the run folder, the repository, the home folder);
 * a cross-reference of a docstring is a link to the object's entry; a broken one fails the build;
-* in Chromium (the Debian package; skipped when there is none): the math of notebook 00 is
-  typeset by the site's own MathJax (no raw ``$`` in its text), the search box finds "Kabsch", a
-  sidebar links the pages, no image is broken, wide tables scroll, and the docstring's
-  cross-reference is a link whose target is on the page it opens;
+* in Chromium (the Debian package; skipped when there is none): the math of notebook 00 and of the
+  float index is typeset by the site's own MathJax (no raw ``$`` or ``\\hat`` in the text), the
+  search box finds "Kabsch" and, opened from ``file://`` as a reader opens it, shows excerpts, a
+  sidebar links the pages, no image is broken, wide tables scroll, on every notebook page no printed
+  line is wider than its box, and the docstring's cross-reference is a link whose target is on the
+  page it opens;
 * the README's gallery: every figure it shows is in the repository, and small.
 """
 from __future__ import annotations
@@ -41,6 +46,8 @@ ROOT = Path(__file__).resolve().parent.parent
 NOTEBOOKS = ROOT / "notebooks"
 CHROMIUM = next((shutil.which(n) for n in ("chromium", "chromium-browser", "google-chrome") if shutil.which(n)), None)
 STDERR_MARK = "progress-on-stderr 50%|#####"
+LONG_LINE = ("Table 5, RGBD-Scenes-v2, 0.10 m: Kabsch RR 15.0 % [9.1, 23.6] vs PnP 8.5 % [4.1, 15.9], n = 120 pairs, "
+             "p = 0.037, paired sign test; " * 4 + "verdict: VERDICT_AT_THE_END")
 
 
 class _Links(HTMLParser):
@@ -98,7 +105,18 @@ def run(tmp_path_factory) -> Path:
         {"output_type": "stream", "name": "stderr", "text": STDERR_MARK + "\n"},
         {"output_type": "display_data", "metadata": {}, "data": {"image/png": _png(), "text/plain": "<Figure>"}},
         {"output_type": "display_data", "metadata": {}, "data": {"text/html": wide, "text/plain": "table"}},
+        # A verdict line far wider than the page, with its verdict word at the end; a long unbroken token;
+        # the machine's paths as a notebook prints them (papermill's out_dir, a figure, a cache).
+        {"output_type": "stream", "name": "stdout", "text": LONG_LINE + "\n" + "f" * 400 + "\n"
+         + f"wrote {run}/00_preliminaries/table.csv, {ROOT}/figures/00_probe.png, cache {Path.home()}/.cache/x\n"},
+        {"output_type": "execute_result", "execution_count": 1, "metadata": {},
+         "data": {"text/plain": "    " + "   ".join(f"column_{k}" for k in range(60))}},
     ]
+    params = next(k for k, c in enumerate(nb["cells"]) if "parameters" in c["metadata"].get("tags", []))
+    nb["cells"].insert(params + 1, {  # as papermill injects it
+        "cell_type": "code", "execution_count": None, "id": "injected", "outputs": [],
+        "metadata": {"tags": ["injected-parameters"]},
+        "source": f'# Parameters\nbackend = "stub"\nout_dir = "{run}/00_preliminaries"\n'})
     (run / "00_preliminaries.ipynb").write_text(json.dumps(nb), encoding="utf-8")
     return run
 
@@ -171,6 +189,22 @@ def test_every_notebook_page_names_its_backend_and_hides_stderr(site, run):
     assert STDERR_MARK.split("|")[0] not in zero and "column_39_with_a_long_name" in zero
 
 
+def test_no_page_shows_a_path_of_this_machine(site, run):
+    """papermill injects ``out_dir`` as an absolute path, and notebooks print file names: the book shows them
+    relative (the run folder by its name here, as this run lies outside the repository)."""
+    paths = _machine_paths(run)
+    files = [p for p in site.rglob("*.html") if "_static" not in p.relative_to(site).parts]
+    files.append(site / "_static" / "freereg_page_texts.js")  # the search excerpts' text
+    hits = [f"{f.relative_to(site)}: {p}" for f in files for p in paths
+            if re.search(re.escape(p) + r"(?![\w.-])", f.read_text(encoding="utf-8"))]
+    assert not hits, "\n".join(hits[:20])
+    import html
+
+    zero = html.unescape(re.sub(r"<[^>]+>", "", (site / "notebooks" / "00_preliminaries.html").read_text("utf-8")))
+    assert f'out_dir = "{run.name}/00_preliminaries"' in zero, "papermill's out_dir, relative"
+    assert "figures/00_probe.png" in zero and "~/.cache/x" in zero and "Parameters injected by papermill" in zero
+
+
 def test_the_api_reference_is_the_method_by_topic_with_linked_cross_references(site):
     api = site / "api"
     assert {f"{slug}.html" for slug, *_ in B.API_TOPICS} <= {p.name for p in api.glob("*.html")}
@@ -219,17 +253,27 @@ def test_the_command_on_a_folder_without_notebooks_says_so(tmp_path):
 # In Chromium, offline.
 
 _PROBE = """<!DOCTYPE html><html><body><pre id="result">pending</pre><script>
-const pages = %s; const out = {}; let left = pages.length;
+const pages = %s; const machinePaths = %s; const out = {}; let left = pages.length;
 function report(page, r) { out[page] = r; if (--left === 0) document.getElementById("result").textContent = JSON.stringify(out); }
 function look(f, page, tries) {
   const d = f.contentDocument, w = f.contentWindow;
   const mathPending = d.querySelector(".math") && !d.querySelector("mjx-container");
-  const searchPending = page.includes("search.html") && !d.querySelector("#search-results li, ul.search li");
+  const found = d.querySelectorAll("#search-results li, ul.search li").length;
+  const finished = /finished/i.test((d.querySelector(".search-summary") || {}).textContent || "");
+  const excerpted = d.querySelectorAll("#search-results li p.context, ul.search li p.context").length;
+  const searchPending = page.includes("search.html") && !(finished && excerpted >= Math.min(3, found));
   if ((mathPending || searchPending) && tries > 0) { setTimeout(() => look(f, page, tries - 1), 250); return; }
   const imgs = Array.from(d.images);
   const tables = Array.from(d.querySelectorAll("article table"));
   const scrolls = el => { for (let e = el, k = 0; e && k < 4; e = e.parentElement, k++) {
       if (["auto", "scroll"].includes(w.getComputedStyle(e).overflowX)) return true; } return false; };
+  // Every printed line whole: an output's text wraps inside its box (no scroll bar, nothing past the article).
+  const article = d.querySelector("article") || d.body, right = article.getBoundingClientRect().right + 1;
+  const pres = Array.from(d.querySelectorAll("div.cell_output pre"));
+  const cut = pres.filter(p => p.scrollWidth > p.clientWidth + 1 || p.getBoundingClientRect().right > right);
+  const outputs = Array.from(d.querySelectorAll("div.cell_output"));
+  const past = outputs.filter(o => o.scrollWidth > o.clientWidth + 1 || o.getBoundingClientRect().right > right);
+  const text = d.body.innerText;
   const xref = d.querySelector("a.reference.internal code.xref");
   const a = xref ? xref.closest("a") : null;
   report(page, {
@@ -239,6 +283,11 @@ function look(f, page, tries) {
     sidebar_links: d.querySelectorAll("nav.bd-docs-nav a, .bd-sidebar-primary nav a").length,
     search_box: !!d.querySelector("form[action*='search'] input[name='q'], input[name='q']"),
     results: Array.from(d.querySelectorAll("#search-results li a, ul.search li a")).map(x => x.textContent).slice(0, 40),
+    excerpts: Array.from(d.querySelectorAll("#search-results li p.context, ul.search li p.context")).map(x => x.textContent).slice(0, 40),
+    printed_lines: pres.reduce((n, p) => n + p.textContent.split("\\n").filter(l => l.trim()).length, 0),
+    cut_lines: cut.map(p => p.textContent.slice(0, 80)), outputs: outputs.length, outputs_past: past.length,
+    machine_paths: machinePaths.filter(m => text.split(m).slice(1).some(rest => !/^[A-Za-z0-9_.-]/.test(rest))),
+    raw_tex: ["hat", "mathbf", "frac"].reduce((n, word) => n + text.split(String.fromCharCode(92) + word).length - 1, 0),
     tables: tables.length, unscrolled: tables.filter(t => !scrolls(t)).length,
     xref_target: a ? (a.hash && d.getElementById(decodeURIComponent(a.hash.slice(1))) ? "found" : a.href) : null,
   });
@@ -251,9 +300,28 @@ for (const page of pages) {
 </script></body></html>"""
 
 
-def _browser(pages: list[str], site: Path) -> dict:
+def _search_excerpts(site: Path, query: str) -> list[str]:
+    """The excerpts of the search page for ``query``, opened from disk as a reader opens it: without
+    ``--allow-file-access-from-files`` (with it Chromium lets fetch() read file:// URLs, which a reader's
+    browser refuses: the probe above needs it to look into its frames)."""
+    url = (site / "search.html").as_uri() + f"?q={query}"
+    proc = subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--proxy-server=127.0.0.1:9",
+                           "--virtual-time-budget=20000", "--dump-dom", url], capture_output=True, text=True, timeout=120)
+    assert "Search finished" in proc.stdout, f"the search did not finish (rc {proc.returncode}): {proc.stderr[-1500:]}"
+    import html
+
+    return [html.unescape(re.sub(r"<[^>]+>", "", x)) for x in re.findall(r'<p class="context">(.*?)</p>', proc.stdout, re.S)]
+
+
+def _machine_paths(run: Path) -> list[str]:
+    """The absolute paths of this machine no page may show: the run folder, the repository, the home folder."""
+    paths = {str(p) for q in (run, ROOT, Path.home()) for p in (q, q.resolve())}
+    return sorted(p for p in paths if len(Path(p).parts) > 1)
+
+
+def _browser(pages: list[str], site: Path, machine_paths: list[str] = ()) -> dict:
     probe = site / "browser_probe.html"
-    probe.write_text(_PROBE % json.dumps(pages))
+    probe.write_text(_PROBE % (json.dumps(pages), json.dumps(list(machine_paths))))
     try:
         proc = subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--allow-file-access-from-files",
                                "--proxy-server=127.0.0.1:9", "--virtual-time-budget=60000", "--dump-dom", probe.as_uri()],
@@ -269,24 +337,39 @@ def _browser(pages: list[str], site: Path) -> dict:
 
 @pytest.mark.skipif(CHROMIUM is None, reason="no chromium binary on PATH (Debian: apt-get install chromium; "
                                              "environment/setup_env.sh --browser installs it when run as root)")
-def test_in_chromium_offline_math_search_sidebar_images_tables_and_a_linked_reference(site):
+def test_in_chromium_offline_math_search_sidebar_images_tables_and_a_linked_reference(site, run):
+    notebooks = [f"notebooks/{p.stem}.html" for p in sorted(run.glob("[0-9][0-9]_*.ipynb"))]
     pages = ["notebooks/00_preliminaries.html", "search.html?q=Kabsch", "api/pose.html", "docs/troubleshooting.html",
-             "freereg_lib/models/micro/weights/MODEL_CARD.html", "index.html"]
-    r = _browser(pages, site)
-    zero, search, pose = r[pages[0]], r[pages[1]], r[pages[2]]
+             "freereg_lib/models/micro/weights/MODEL_CARD.html", "index.html", *notebooks[1:]]
+    r = _browser(pages, site, _machine_paths(run))
+    zero, search, pose, index = r[pages[0]], r[pages[1]], r[pages[2]], r["index.html"]
     assert "error" not in zero, zero
     assert zero["mjx"] >= 20 and zero["text_dollars"] == 0, f"math not typeset in notebook 00: {zero}"
     assert zero["images"] >= 1 and not zero["broken"], zero
     assert search["results"] and any("Kabsch" in t or "pose" in t.lower() for t in search["results"]), search
     assert search["search_box"], search
+    # The float index: its math typeset (Table 3's t-hat), none of it raw.
+    assert index["raw_tex"] == 0 and index["mjx"] >= 1, index
     for page in pages:
         assert "error" not in r[page], (page, r[page])
         assert r[page]["sidebar_links"] >= 10, f"{page}: no sidebar ({r[page]})"
         assert not r[page]["broken"], f"{page}: broken images {r[page]['broken']}"
         assert r[page]["unscrolled"] == 0, f"{page}: {r[page]['unscrolled']} of {r[page]['tables']} tables do not scroll"
+        assert not r[page]["machine_paths"], f"{page} shows this machine's paths {r[page]['machine_paths']}"
+    # Every printed line whole on every notebook page: no output wider than its box.
+    assert len(notebooks) == 8 and zero["printed_lines"] >= 4, zero
+    for page in notebooks:
+        assert not r[page]["cut_lines"] and r[page]["outputs_past"] == 0, \
+            f"{page}: printed lines wider than their box: {r[page]['cut_lines']} ({r[page]['outputs_past']} outputs)"
     assert r["docs/troubleshooting.html"]["tables"] >= 1 and zero["tables"] >= 1
     assert r["freereg_lib/models/micro/weights/MODEL_CARD.html"]["images"] >= 1  # the loss curves
     assert pose["xref_target"] == "found", pose
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="no chromium binary on PATH")
+def test_in_chromium_search_results_have_excerpts_from_file(site):
+    excerpts = _search_excerpts(site, "Kabsch")
+    assert sum("kabsch" in t.lower() for t in excerpts) >= 3, f"no search excerpts offline: {excerpts[:5]}"
 
 
 # --------------------------------------------------------------------------------------
@@ -355,3 +438,29 @@ def test_every_float_of_the_paper_has_a_section_or_a_reason():
     extra = B.PaperFloat("Table 14", "a table the paper lacks", "06_appendix", "1.", ())
     assert B.unmapped_floats([*B.PAPER_FLOATS, extra]) == ["Table 14: not a float of the paper"]
     assert B.float_number("Fig. 5 b-d") == "Fig. 5" and B.float_number("Fig. 2-I") == "Fig. 2"
+
+
+def _names_float(heading: str, number: str) -> bool:
+    """Whether a heading names the paper's float ``number`` ("Table 13", "Fig. 7"; "Figs. 6 and 9" names both)."""
+    kind, n = B.float_number(number).split(" ")
+    return re.search(rf"\b{kind.rstrip('.')}s?\.? [^()]*?\b{n}(?!\d)", heading) is not None
+
+
+def test_the_float_index_is_in_the_papers_order_and_lands_on_headings_that_name_the_float():
+    assert B.out_of_order() == []
+    fig7 = next(f for f in B.PAPER_FLOATS if f.number == "Fig. 7")
+    rows = [f for f in B.PAPER_FLOATS if f is not fig7]
+    rows.insert(next(k for k, f in enumerate(rows) if f.number == "Fig. 5 e-g"), fig7)  # where it was
+    assert B.out_of_order(rows) == ["Fig. 7 before Fig. 5", "Fig. 7 before Fig. 6"]
+    assert _names_float("4. Successes and failures on real frames (Figs. 6 and 9)", "Fig. 9")
+    assert not _names_float("3. The verdict, from the committed test split", "Table 13")
+    assert not _names_float("3. Table 1 beside the paper's", "Table 13") and not _names_float("Table 13", "Table 1")
+    unnamed = []
+    for f in B.PAPER_FLOATS:
+        if f.reason:
+            continue
+        heads = B._headings(json.loads((NOTEBOOKS / f"{f.notebook}.ipynb").read_text(encoding="utf-8")))
+        head = next(t for _, t in heads if t.startswith(f.section))
+        if not _names_float(head, f.number):
+            unnamed.append(f"{f.number}: {f.notebook} '{head}'")
+    assert not unnamed, f"the float index links to headings that do not name the float: {unnamed}"
