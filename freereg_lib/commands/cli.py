@@ -280,6 +280,8 @@ def register_command(args) -> int:
         if blocked is not None:
             return _fail(f"{'--out ' if args.out else 'the output folder '}{out}: {blocked} is an existing file, "
                          "not a folder; give --out a folder (it is created when missing)")
+        if unwritable := UI.output_fault(out):
+            return _fail(("--out " if args.out else "the output folder ") + unwritable)
         if args.ransac_iters < 1:
             return _fail(f"--ransac-iters must be >= 1, got {args.ransac_iters}")
         if args.fcgf_checkpoint and args.geometric != "fcgf":
