@@ -203,3 +203,31 @@ def test_finetune_init_from_a_damaged_folder_is_one_line(tmp_path, capsys):
         FC.parse_args(["--init-from", str(weights), "--out", str(tmp_path / "out")])
     err = capsys.readouterr().err
     assert info.value.code == 2 and "does not match its checksum" in err and "Traceback" not in err
+
+
+# --- freereg register --out: checked writable before the registration runs --------------------------------
+
+from freereg_lib.commands import cli  # noqa: E402
+from freereg_lib.commands import user_inputs as UI  # noqa: E402
+
+
+def test_register_out_in_a_read_only_folder_stops_before_registering(tmp_path, capsys, monkeypatch):
+    from freereg_lib.data.datasets.icl import ICLSample
+    from freereg_lib.report import pair_files as PF
+
+    pair = PF.downscale_pair(ICLSample().pair(10, 40), 0.25)
+    paths = PF.write_user_files(pair, tmp_path / "in")
+    K = [f"{v:.6f}" for v in (pair.K_image[0, 0], pair.K_image[1, 1], pair.K_image[0, 2], pair.K_image[1, 2])]
+
+    def read_only(folder):  # as root, chmod does not stop writes: a read-only mount's error, simulated
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    monkeypatch.setattr(UI, "_probe_write", read_only, raising=False)  # (none before the check existed)
+    monkeypatch.setattr(cli, "write_outputs", lambda *a, **k: pytest.fail("registered, then failed to write"))
+    out = tmp_path / "ro" / "result"
+    rc = cli.main(["register", str(paths["image"]), str(paths["cloud"]), "--K", *K, "--image-depth", str(paths["image_depth"]),
+                   "--backend", "stub",
+                   "--ransac-iters", "50", "--views", "1", "--out", str(out)])
+    captured = capsys.readouterr()
+    assert rc == 2 and f"--out {out}: cannot write in {tmp_path} (Read-only file system)" in captured.err, captured.err
+    assert "Traceback" not in captured.err and "backend:" not in captured.out

@@ -57,6 +57,32 @@ def read_intrinsics(path: str | Path) -> np.ndarray:
     raise InputError(f"{path} holds {vals.size} numbers; expected 4 (fx fy cx cy) or 9 (a 3 x 3 matrix)")
 
 
+def _probe_write(folder: Path) -> None:
+    """Create and remove a file in ``folder`` (as root ``os.access`` says yes to a read-only mount)."""
+    import os
+    import tempfile
+
+    fd, name = tempfile.mkstemp(prefix=".freereg-probe-", dir=folder)
+    os.close(fd)
+    os.unlink(name)
+
+
+def output_fault(out: Path) -> str:
+    """Why the outputs cannot be written into the folder ``out`` ("" when they can): its nearest
+    existing folder refuses a file (a read-only mount, ``/proc``). Checked before the registration
+    runs, which takes minutes on a CPU; the outputs were lost after it."""
+    where = Path(out)
+    while not where.exists() and where != where.parent:
+        where = where.parent
+    if not where.is_dir():
+        return ""  # a file in the way: the caller names it
+    try:
+        _probe_write(where)
+    except OSError as exc:
+        return f"{out}: cannot write in {where} ({exc.strerror or exc}); give --out a folder you can write"
+    return ""
+
+
 def read_pose(path: str | Path | None, what: str) -> np.ndarray | None:
     """A 4 x 4 rigid pose from a text file (``identity`` gives the identity), checked."""
     if path is None:
