@@ -359,9 +359,16 @@ def range_problem(name: str, value) -> str:
     return ""
 
 
+# Text fields with a closed set of values, checked when the config is made: a typo failed later, in
+# the middle of an evaluation, with a message that did not name the field.
+CHOICES = {"eval_few_matches": ("official", "zero")}
+
+
 def _check_ranges(cfg: FreeRegConfig) -> None:
     """Raise ``ValueError`` (one line) naming every field of ``cfg`` outside its declared range."""
     problems = [p for f in dataclasses.fields(cfg) if (p := range_problem(f.name, getattr(cfg, f.name)))]
+    problems += [f"{name}={getattr(cfg, name)!r} is not one of {', '.join(map(repr, allowed))}"
+                 for name, allowed in CHOICES.items() if getattr(cfg, name) not in allowed]
     if not problems and not cfg.depth_min < cfg.depth_max:
         problems.append(f"depth_min={cfg.depth_min!r} must be below depth_max={cfg.depth_max!r}")
     if problems:

@@ -231,3 +231,27 @@ def test_register_out_in_a_read_only_folder_stops_before_registering(tmp_path, c
     captured = capsys.readouterr()
     assert rc == 2 and f"--out {out}: cannot write in {tmp_path} (Read-only file system)" in captured.err, captured.err
     assert "Traceback" not in captured.err and "backend:" not in captured.out
+
+
+# --- round 4's unclear cases: a config typo, a parity manifest naming a function with no folder ----------
+
+def test_a_config_typo_in_a_closed_choice_is_named_when_made():
+    from freereg_lib.config import FreeRegConfig
+
+    with pytest.raises(ValueError, match=r"eval_few_matches='x' is not one of 'official', 'zero'"):
+        FreeRegConfig(eval_few_matches="x")
+    assert FreeRegConfig().override(eval_few_matches="zero").eval_few_matches == "zero"
+
+
+def test_parity_fails_when_the_manifest_lists_a_function_with_no_folder(tmp_path, capsys):
+    import shutil
+    import sys
+
+    sys.path.insert(0, str(ROOT / "tools"))
+    import parity
+
+    shutil.copytree(ROOT / "tests" / "fixtures" / "parity" / "return_uv", tmp_path / "return_uv")
+    (tmp_path / "manifest.json").write_text(json.dumps({"functions": {"return_uv": {}, "fill_in_fast": {}}}))
+    rc = parity.main([str(tmp_path)])
+    out = capsys.readouterr().out
+    assert rc == 1 and f"fill_in_fast: FAIL [the manifest lists it, and {tmp_path / 'fill_in_fast'} does not exist" in out
