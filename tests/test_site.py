@@ -196,7 +196,7 @@ def test_no_page_shows_a_path_of_this_machine(site, run):
     files = [p for p in site.rglob("*.html") if "_static" not in p.relative_to(site).parts]
     files.append(site / "_static" / "freereg_page_texts.js")  # the search excerpts' text
     hits = [f"{f.relative_to(site)}: {p}" for f in files for p in paths
-            if re.search(re.escape(p) + r"(?![\w.-])", f.read_text(encoding="utf-8"))]
+            if re.search(re.escape(p) + ("" if p.endswith("/") else r"(?![\w.-])"), f.read_text(encoding="utf-8"))]
     assert not hits, "\n".join(hits[:20])
     import html
 
@@ -286,7 +286,7 @@ function look(f, page, tries) {
     excerpts: Array.from(d.querySelectorAll("#search-results li p.context, ul.search li p.context")).map(x => x.textContent).slice(0, 40),
     printed_lines: pres.reduce((n, p) => n + p.textContent.split("\\n").filter(l => l.trim()).length, 0),
     cut_lines: cut.map(p => p.textContent.slice(0, 80)), outputs: outputs.length, outputs_past: past.length,
-    machine_paths: machinePaths.filter(m => text.split(m).slice(1).some(rest => !/^[A-Za-z0-9_.-]/.test(rest))),
+    machine_paths: machinePaths.filter(m => text.split(m).slice(1).some(rest => m.endsWith("/") || !/^[A-Za-z0-9_.-]/.test(rest))),
     raw_tex: ["hat", "mathbf", "frac"].reduce((n, word) => n + text.split(String.fromCharCode(92) + word).length - 1, 0),
     tables: tables.length, unscrolled: tables.filter(t => !scrolls(t)).length,
     xref_target: a ? (a.hash && d.getElementById(decodeURIComponent(a.hash.slice(1))) ? "found" : a.href) : null,
@@ -314,8 +314,11 @@ def _search_excerpts(site: Path, query: str) -> list[str]:
 
 
 def _machine_paths(run: Path) -> list[str]:
-    """The absolute paths of this machine no page may show: the run folder, the repository, the home folder."""
-    paths = {str(p) for q in (run, ROOT, Path.home()) for p in (q, q.resolve())}
+    """The absolute paths of this machine no page may show: the run folder and the repository (as a whole
+    name: not "/work/mainline"), and any path inside the home folder (with its "/": a page may say "a Python
+    under /root" where the home folder is /root)."""
+    paths = {str(p) for q in (run, ROOT) for p in (q, q.resolve())}
+    paths |= {f"{h}/" for h in {str(Path.home()), str(Path.home().resolve())}}
     return sorted(p for p in paths if len(Path(p).parts) > 1)
 
 
