@@ -17,7 +17,7 @@ kernel and stays under a minute. ``python -m freereg_lib.commands.book`` builds 
   search box finds "Kabsch" and, opened from ``file://`` as a reader opens it, shows excerpts, a
   sidebar links the pages, no image is broken, wide tables scroll, on every notebook page no printed
   line is wider than its box, and the docstring's cross-reference is a link whose target is on the
-  page it opens;
+  page it opens (``FREEREG_BOOK_RUN=runs/reproduce`` runs these checks on a real run's book too);
 * the README's gallery: every figure it shows is in the repository, and small.
 """
 from __future__ import annotations
@@ -367,6 +367,25 @@ def test_in_chromium_offline_math_search_sidebar_images_tables_and_a_linked_refe
     assert r["docs/troubleshooting.html"]["tables"] >= 1 and zero["tables"] >= 1
     assert r["freereg_lib/models/micro/weights/MODEL_CARD.html"]["images"] >= 1  # the loss curves
     assert pose["xref_target"] == "found", pose
+
+
+BUILT_RUN = os.environ.get("FREEREG_BOOK_RUN")  # a run folder whose book is built, e.g. runs/reproduce
+
+
+@pytest.mark.skipif(CHROMIUM is None or not BUILT_RUN, reason="set FREEREG_BOOK_RUN=<run folder> (e.g. runs/reproduce, "
+                                                             "after `make reproduce`) to check that run's book")
+def test_in_chromium_the_book_of_a_built_run_shows_every_line_and_no_machine_path():
+    """The checks above on the book of a real run (opt-in: it needs `make reproduce` first)."""
+    run = (ROOT / BUILT_RUN).resolve()
+    site = run / "site"
+    notebooks = [f"notebooks/{p.stem}.html" for p in sorted(run.glob("[0-9][0-9]_*.ipynb"))]
+    assert notebooks and (site / "index.html").is_file(), f"{run}: no executed notebooks or no site/index.html"
+    r = _browser([*notebooks, "index.html"], site, _machine_paths(run))
+    for page in notebooks:
+        assert not r[page]["cut_lines"] and r[page]["outputs_past"] == 0, (page, r[page]["cut_lines"])
+        assert not r[page]["machine_paths"] and r[page]["unscrolled"] == 0, (page, r[page])
+    assert r["index.html"]["raw_tex"] == 0 and not r["index.html"]["machine_paths"], r["index.html"]
+    assert sum("kabsch" in t.lower() for t in _search_excerpts(site, "Kabsch")) >= 3
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="no chromium binary on PATH")
