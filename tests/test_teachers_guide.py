@@ -188,7 +188,7 @@ def test_the_guide_walks_a_class_through_release_collection_grading_and_export(t
     carol = feedback["s003"]
     assert "refused" in carol and "imports freereg_lib" in carol and "FAILED (0 / 3) planar point sets" in carol
     assert "Its inputs" in carol and "arg0 = np.array(" in carol
-    assert "hard limit of 20 s" in feedback["s004"] and "graded the newest" in feedback["'@eve"]
+    assert "hard limit of 10 s" in feedback["s004"] and "graded the newest" in feedback["'@eve"]
     assert not any(str(tmp_path) in text for text in feedback.values())
 
 

@@ -75,7 +75,7 @@ def md(text) -> str:
 def _fence(text: str) -> list[str]:
     """``text`` as a fenced code block no line of it can close (HTML shows as text there)."""
     ticks = "`" * max(3, 1 + max((len(m) for m in re.findall(r"`+", text)), default=0))
-    return [f"{ticks}python", public(text), ticks]
+    return [f"{ticks}python", *public(text).splitlines(), ticks]
 
 
 def feedback(result: dict) -> str:

@@ -71,12 +71,18 @@ def _message(text: Any) -> str:
     return text if len(text) <= 400 else text[:397] + "..."
 
 
+SHOW_VALUES = 200  # an argument up to this many values is shown whole (pasteable), a larger one by its ends
+
+
 def _show(value: Any, depth: int = 0) -> str:
-    """An argument as Python a student can paste (arrays in full up to 60 values, else their first rows)."""
+    """An argument as Python a student can paste (an array whole up to :data:`SHOW_VALUES` values, else its
+    first and last rows, said in a comment)."""
     if isinstance(value, np.ndarray):
-        text = np.array2string(value, separator=", ", precision=6, threshold=60, edgeitems=3, max_line_width=100,
-                               floatmode="maxprec")
-        return f"np.array({text})" + ("" if value.size <= 60 else f"  # shape {value.shape}: first and last rows")
+        text = np.array2string(value, separator=", ", precision=6, threshold=SHOW_VALUES, edgeitems=3,
+                               max_line_width=100, floatmode="maxprec")
+        dtype = "" if value.dtype in (np.float64, np.int64, np.bool_) else f", dtype=np.{value.dtype}"
+        return (f"np.array({text}{dtype})"
+                + ("" if value.size <= SHOW_VALUES else f"  # shape {value.shape}: its first and last rows only"))
     if isinstance(value, (list, tuple)) and depth < 3:
         inner = ", ".join(_show(v, depth + 1) for v in value)
         return f"({inner}{',' if len(value) == 1 else ''})" if isinstance(value, tuple) else f"[{inner}]"
