@@ -486,3 +486,16 @@ def test_the_float_index_is_in_the_papers_order_and_lands_on_headings_that_name_
         if not _names_float(head, f.number):
             unnamed.append(f"{f.number}: {f.notebook} '{head}'")
     assert not unnamed, f"the float index links to headings that do not name the float: {unnamed}"
+
+
+def test_every_module_of_the_method_layers_is_in_the_api_reference():
+    """A new module of the method (config, geometry, data, models, features, pipeline) gets a topic of
+    ``API_TOPICS``: else its page is missing, and a docstring's ``:mod:`` naming it fails the book's build."""
+    listed = {m for *_, modules in B.API_TOPICS for m in modules}
+    found = {"freereg_lib.config"}
+    for layer in ("geometry", "data", "models", "features", "pipeline"):
+        for path in (ROOT / "freereg_lib" / layer).rglob("*.py"):
+            parts = path.relative_to(ROOT).with_suffix("").parts
+            found.add(".".join(parts[:-1] if parts[-1] == "__init__" else parts))
+    assert not found - listed, f"modules missing from book.API_TOPICS: {sorted(found - listed)}"
+    assert not listed - found, f"API_TOPICS names modules that do not exist: {sorted(listed - found)}"
