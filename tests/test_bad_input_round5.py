@@ -255,3 +255,22 @@ def test_parity_fails_when_the_manifest_lists_a_function_with_no_folder(tmp_path
     rc = parity.main([str(tmp_path)])
     out = capsys.readouterr().out
     assert rc == 1 and f"fill_in_fast: FAIL [the manifest lists it, and {tmp_path / 'fill_in_fast'} does not exist" in out
+
+
+@pytest.mark.parametrize("module, argv", [
+    ("diagnose", ["--weights", "{w}", "--pairs", "1"]), ("evaluate", ["--weights", "{w}", "--pairs", "1"]),
+    ("evaluate_depth", ["--weights", "{w}"]), ("train_depth", ["--init-from", "{w}", "--out", "{o}"]),
+    ("train_diffusion", ["--init-from", "{w}", "--out", "{o}"])])
+def test_every_training_command_refuses_a_damaged_weights_folder_first(tmp_path, capsys, monkeypatch, module, argv):
+    import importlib
+
+    mod = importlib.import_module(f"freereg_lib.training.{module}")
+    weights = _weights(tmp_path)
+    for heavy in ("diagnose", "evaluate", "train", "run"):  # whatever would spend the work
+        if callable(getattr(mod, heavy, None)):
+            monkeypatch.setattr(mod, heavy, lambda *a, **k: pytest.fail("the work started"))
+    argv = [a.format(w=weights, o=tmp_path / "out") for a in argv]
+    with pytest.raises(SystemExit) as info:
+        (mod.parse_args if hasattr(mod, "parse_args") else mod.main)(argv)
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "does not match its checksum" in err and "Traceback" not in err, err

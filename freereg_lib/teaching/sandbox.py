@@ -163,9 +163,10 @@ def _can_run_python(uid: int, gid: int) -> bool:
 
     site = os.path.dirname(os.path.dirname(os.path.realpath(numpy.__file__)))
     try:
-        return subprocess.run([sys.executable, "-I", "-S", "-c", f"import sys; sys.path[:0] = [{site!r}]; import numpy"],
-                              user=uid, group=gid, extra_groups=[], cwd="/", env={"PATH": "/usr/bin:/bin"},
-                              stdin=subprocess.DEVNULL, capture_output=True, timeout=60).returncode == 0
+        code = f"import sys; sys.path[:0] = [{site!r}]; import numpy"
+        return subprocess.run([sys.executable, "-I", "-S", "-c", code], user=uid, group=gid, extra_groups=[],
+                              cwd="/", env={"PATH": "/usr/bin:/bin"}, stdin=subprocess.DEVNULL, capture_output=True,
+                              timeout=60).returncode == 0
     except (OSError, subprocess.SubprocessError):
         return False
 

@@ -115,14 +115,16 @@ def exit_on_bad_rows(argv, command: str, row_key: str) -> None:
 
 
 def weights_fault(folder: str | Path) -> str:
-    """What is wrong with the weights folder ``folder`` ("" when nothing): a file that is not whole or
-    does not match the ``SHA256SUMS`` of its folder, in ``folder`` or any sub-folder, or a
-    ``training.json`` that is not JSON."""
+    """What is wrong with the weights folder ``folder`` ("" when nothing, or no such folder yet): a
+    file that is not whole or does not match the ``SHA256SUMS`` of its folder, in ``folder`` or any
+    sub-folder, or a ``training.json`` that is not JSON."""
     from freereg_lib.models.weightcheck import WeightsError, check_folder
 
     folder = Path(folder)
+    if not folder.exists():
+        return ""  # not made yet (a later phase's --init-from): the command's own message when it is needed
     if not folder.is_dir():
-        return f"{folder}: {'not a folder' if folder.exists() else 'no such folder'}; expected an exported weights folder"
+        return f"{folder}: not a folder; expected an exported weights folder"
     for d in [folder, *sorted(p for p in folder.rglob("*") if p.is_dir())]:
         try:
             check_folder(d)

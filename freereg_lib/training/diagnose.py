@@ -235,6 +235,10 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=None, help="write the result as JSON here")
     args = p.parse_args(argv)
     guard_eval_seed(args.seed, args.pairs)  # no pair may draw a training room
+    from freereg_lib.training.command_inputs import weights_fault
+
+    if args.weights and (fault := weights_fault(args.weights)):  # SHA256SUMS, whole files: before any pair
+        p.error(f"--weights {args.weights}: {fault}")
     result = diagnose(args.pairs, args.seed, args.weights, args.random_weights, args.noise_seed)
     print(report(result))
     if args.out:

@@ -50,6 +50,10 @@ def parse_args(argv=None):
             p.error(f"{flag} must be >= 1, got {value}")
     if args.seed < 0:
         p.error(f"--seed must be >= 0 (pair seeds are seed * 1000003 + k), got {args.seed}")
+    from freereg_lib.training.command_inputs import weights_fault
+
+    if Path(args.weights).exists() and (fault := weights_fault(args.weights)):  # SHA256SUMS, whole files
+        p.error(f"--weights {args.weights}: {fault}")
     return args
 
 

@@ -72,7 +72,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--init-from", default=None,
                    help="continue an exported folder (its weights and training.json) from its step count to "
                         "--steps, with a fresh AdamW: warm-up again, then cosine to 10 %% over the new steps")
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    from freereg_lib.training.command_inputs import weights_fault
+
+    if args.init_from and (fault := weights_fault(args.init_from)):  # before any view is rendered
+        p.error(f"--init-from {args.init_from}: {fault}")
+    return args
 
 
 # ------------------------------------------------------------------------------- data

@@ -109,6 +109,10 @@ def parse_args(argv=None) -> argparse.Namespace:
         p.error("--restart-unet: the folder's ControlNet was built on the old UNet; add --restart-controlnet")
     if args.snr_gamma is not None and not args.snr_gamma > 0:
         p.error(f"--snr-gamma {args.snr_gamma}: expected a positive number")
+    from freereg_lib.training.command_inputs import weights_fault
+
+    if args.init_from and (fault := weights_fault(args.init_from)):  # before any view is rendered
+        p.error(f"--init-from {args.init_from}: {fault}")
     return args
 
 
