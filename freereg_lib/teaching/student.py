@@ -160,6 +160,10 @@ def watch(read: list[Path], write: list[Path], fd: int | None, state: dict) -> N
     seen: set[str] = set()
 
     def hook(event: str, args: tuple) -> None:
+        with contextlib.suppress(Exception):  # whatever the arguments, the student's call goes on as it would
+            note(event, args)
+
+    def note(event: str, args: tuple) -> None:
         if event == "open":
             path, mode, flags = (tuple(args) + (None, None, None))[:3]
             changes = bool((flags or 0) & _WRITE_FLAGS) or (isinstance(mode, str) and any(c in mode for c in "wax+"))
