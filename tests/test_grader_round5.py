@@ -192,3 +192,14 @@ def test_cells_and_markdown_of_hostile_text():
         "'=1+1", "'+SUM(1+1)", "'-2+3", "'@x", "'\tx", "10", "ann"]
     assert export.md("a | b *c* [d](e) `f` <b>") == "a \\| b \\*c\\* \\[d\\](e) \\`f\\` &lt;b&gt;"
     assert export.md("student_fuse in /home/t/x/03_fusion.ipynb") == "student_fuse in .../03_fusion.ipynb"
+
+
+def test_outputs_inside_what_is_read_are_refused(tmp_path, capsys, monkeypatch):
+    (tmp_path / "returned" / "ann").mkdir(parents=True)
+    assert assignments.main(["collect", str(tmp_path / "returned"), "--out", str(tmp_path / "returned" / "s")]) == 2
+    assert "inside the returns' folder" in capsys.readouterr().err and not (tmp_path / "returned" / "s").exists()
+    fusion_student(tmp_path / "class" / "ann", STUB)
+    monkeypatch.setattr(grader, "grade", lambda *a, **k: pytest.fail("grading started"))
+    out = tmp_path / "class" / "ann" / "grades"
+    assert assignments.main(["grade", str(tmp_path / "class" / "ann"), "--out", str(out)]) == 2
+    assert "inside the submission" in capsys.readouterr().err and not out.exists()

@@ -74,6 +74,9 @@ def collect(returned: str | Path, out: str | Path) -> dict[str, list[str]]:
     into ``out/<id>/``, with their times; returns the notebooks found per student. Paths inside a
     zip are dropped (only the file names are kept), and every id is checked (:func:`returns`)
     before anything is written, so nothing is written outside ``out``."""
+    if Path(out).resolve() == Path(returned).resolve() or Path(out).resolve().is_relative_to(Path(returned).resolve()):
+        raise IdError(f"--out {out}: inside the returns' folder {returned}, which collect reads; give another folder "
+                      "(e.g. submissions/)")
     found: dict[str, list[str]] = {}
     for sid, entry in returns(returned).items():
         target = Path(out) / sid
@@ -182,6 +185,9 @@ def grade_all(paths: list[str | Path], out: str | Path | None = None, roster: st
     happened. The ids are checked first (:func:`plan`: :class:`IdError` before any grading)."""
     rows = read_roster(roster) if roster else []
     planned = plan(paths, rows)
+    for path, _ in planned if out else []:  # the grades must not land among what is graded
+        if path.is_dir() and Path(out).resolve().is_relative_to(path.resolve()):
+            raise IdError(f"--out {out}: inside the submission {path}; give a folder of its own (e.g. grades/)")
     extra = {r["id"]: r for r in rows}
     prepared = grader.prepare(seed)
     if out:
