@@ -37,7 +37,7 @@ def test_the_summary_ranks_the_rows_and_tests_the_best_against_the_chosen():
 
 def test_the_verdict_reads_the_committed_json(tmp_path, monkeypatch):
     (tmp_path / verdicts.COMBINATIONS_JSON).write_text(json.dumps(EC.summarize(_recs(), "dev")))
-    monkeypatch.setattr(verdicts, "_load", lambda name: json.loads((tmp_path / name).read_text()))
+    monkeypatch.setattr(verdicts, "load", lambda name: json.loads((tmp_path / name).read_text()))
     lines = verdicts.table8()
     assert "by IR: best (0, 4, 7) 50.1" in lines[1] and "ranks 21 of 21" in lines[1], lines
     assert "the paper's best (0, 1, 2, 6), its (0, 4, 6) ranks" in lines[1], lines

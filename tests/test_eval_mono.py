@@ -85,13 +85,14 @@ def test_the_verdict_reads_the_committed_json(tmp_path, monkeypatch):
             for m in evaluate_mono.MODALITIES for s in evaluate_mono.SOLVERS[m]]}
     recs = [rec(k, {"RGB": True, "DPT": True, "cross": k % 2 == 0}) for k in range(4)]
     (tmp_path / verdicts.MONO_JSON).write_text(json.dumps(evaluate_mono.summarize(recs, "test")))
-    monkeypatch.setattr(verdicts, "_load", lambda name: json.loads((tmp_path / name).read_text()))
+    monkeypatch.setattr(verdicts, "load", lambda name: json.loads((tmp_path / name).read_text()))
     lines = verdicts.table10()
     assert "4 synthetic indoor pairs" in lines[0] and "RR 74.2" in lines[1] and "RR 63.8" in lines[3], lines
     assert "RGB to RGB - image to cloud (the paper: RR +10.4" in lines[4] and "RR +50.0 points" in lines[4], lines
-    assert "IR +0.0 points (p = 1.0000, not significant at 5 %) -> no significant difference here" in lines[4], lines
-    assert "RR +0.0 points [+0.0, +0.0]" in lines[6] and "no significant difference here" in lines[6], lines
-    assert lines[7].endswith("not shown here"), lines  # DPT - cross: 2 of 4 pairs, not significant
+    assert "IR +0.0 points (p = 1.0000, not significant at 5 %) -> cannot be told (4 pairs, fewer than 30)" in lines[4], lines
+    assert "RR +0.0 points [+0.0, +0.0]" in lines[6] and "cannot be told (4 pairs" in lines[6], lines
+    assert lines[7].endswith("RGB to RGB cannot be told (4 pairs, fewer than 30); depth to depth cannot be told "
+                             "(4 pairs, fewer than 30)"), lines
 
 
 @pytest.mark.parametrize("argv, message", [

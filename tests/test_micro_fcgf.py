@@ -226,9 +226,9 @@ def test_table9_ordering_is_read_from_both_ladders():
     assert ladder_order(res((0.0, 40.0), (3.3, 60.0)), "FreeReg-G")["holds"] is False  # Kabsch ahead at both
     assert ladder_order(res((0.0, 0.0), (0.0, 3.3)), "FreeReg-G")["holds"] == "tie"  # 0 % at the tight rung
     line = ladder_line(ladder_order(paper_like, "FreeReg-G"), paper_like)
-    assert "5deg/0.1m: 10.0/3.3" in line and "holds here" in line
+    assert "5deg/0.1m: 10.0/3.3" in line and "is seen here in direction only" in line
     tie = res((0.0, 0.0), (0.0, 3.3))
-    assert "cannot be told here" in ladder_line(ladder_order(tie, "FreeReg-G"), tie)
+    assert "cannot be told (a tie at one end)" in ladder_line(ladder_order(tie, "FreeReg-G"), tie)
     assert "PnP 9.4 / Kabsch 3.5" in line and "40.2 / 65.3" in line  # the paper's Table 9, 3DMatch row
 
 
@@ -253,7 +253,7 @@ def test_fcgf_card_states_the_rotations_trained_with_and_the_table9_verdict(tmp_
             "val": [[2, {"loss": 0.9, "hit_ratio": 0.05}]]}))
         text = card.write_fcgf_card(tmp_path).read_text()
         assert expected in text
-        assert "cannot be told here (a tie at one end)" in text  # both solvers at 0 % on the tightest rung
+        assert "cannot be told (a tie at one end)" in text  # both solvers at 0 % on the tightest rung
         assert "Image side:" not in text  # the default, the image's depth, is stated with the data
         # The first card draws its figure; the later ones are read for their words only, and
         # each drawing costs ~0.3 s of matplotlib.

@@ -173,7 +173,11 @@ def report(result: dict) -> str:
     return "\n".join(lines)
 
 
-VERDICT = {True: "holds here", False: "does not hold here", "tie": "cannot be told here (a tie at one end)"}
+# Words of the one vocabulary (freereg_lib.report.vocabulary): the ladders are stored as shares, with no
+# paired test, so a direction is reported and no verdict is given.
+VERDICT = {True: "is seen here in direction only (no paired test, no verdict)",
+           False: "is reversed here at one end or both (no paired test, no verdict)",
+           "tie": "cannot be told (a tie at one end)"}
 
 
 def ladder_line(lo: dict, res: dict) -> str:

@@ -26,18 +26,24 @@ import json
 from pathlib import Path
 
 from freereg_lib.data import paper
-from freereg_lib.training.verdicts import _ahead, _ci, _points, _sig
+from freereg_lib.report.vocabulary import Value, verdict, verdict_line
+from freereg_lib.training.verdicts import _ci, _points, _sig
 
 RGBD_V2_JSON = "rgbd_scenes_v2_test.json"  # under the micro weights' folder (an absolute path is kept)
 FINETUNE_JSON = "finetune_test.json"
 OTHER_BACKBONES_JSON = "other_backbones_test.json"
 
 
-def _load(name) -> dict | None:
+def load(name) -> dict | None:
+    """A committed result JSON of the micro models; None when it is absent."""
     from freereg_lib.models.micro.diffusion import WEIGHTS_DIR
 
     path = Path(WEIGHTS_DIR) / name
     return json.loads(path.read_text()) if path.exists() else None
+
+
+def _v(name: str, stat: dict) -> Value:
+    return Value(name, stat["mean"], tuple(stat["ci"]))
 
 
 def paper_means() -> dict[str, float]:
@@ -50,7 +56,7 @@ def paper_means() -> dict[str, float]:
 def table5() -> list[str]:
     """Table 5's reading: the paper's claim (PnP above Kabsch under this protocol; FreeReg's mean IR,
     FMR, RR) beside the micro models' numbers with 95 % bootstrap intervals."""
-    r = _load(RGBD_V2_JSON)
+    r = load(RGBD_V2_JSON)
     if r is None:
         return [f"(no committed {RGBD_V2_JSON}: run python -m freereg_lib.training.evaluate_rgbd_v2)"]
     p, res, test = paper_means(), r["results"], r["tests"]["RR: pnp - kabsch"]
@@ -69,19 +75,17 @@ def table5() -> list[str]:
         f"  reachable: {_ci(k['reachable'])} of the image keypoints have a cloud keypoint within IR's radius "
         "(a ceiling on what any matcher on these keypoints can make an inlier)",
     ]
-    ci = test["diff_ci"]
-    verdict = _ahead(n["RR"]["mean"], k["RR"]["mean"])
-    sig = "" if verdict != "holds" or test["p"] < 0.05 else " in the mean only, not significantly"
-    lines.append(f"  PnP above Kabsch: {verdict} here{sig} (PnP - Kabsch {test['diff']:+.1f} points "
-                 f"[{ci[0]:+.1f}, {ci[1]:+.1f}], {_sig(test['p'])}; the paper: "
-                 f"{p['RR pnp'] - p['RR kabsch']:+.1f}, Kabsch held back by the monocular depth's scale)")
+    setting = f"{r['backend'].split(' (')[0]}, Table 5's protocol"
+    lines.append("  " + verdict_line(f"PnP above Kabsch at RR (RMSE < {th['RMSE_m']:g} cm), the paper: "
+                                     f"{p['RR pnp'] - p['RR kabsch']:+.1f} points", _v("PnP", n["RR"]),
+                                     _v("Kabsch", k["RR"]), test["diff"], test["p"], r["n_pairs"], setting))
     main = r["tests"].get("RR_main: pnp - kabsch")
-    if main is not None:  # the same poses on the paper's main RR, looser than an RMSE of a few centimetres
-        th, ci = r["thresholds_main"], main["diff_ci"]
-        lines.append(f"  the same poses at the main RR (RE < {th['RE_deg']:g} deg, TE < {th['TE_m']:g} m): Kabsch "
-                     f"{_ci(k['RR_main'])}, PnP {_ci(n['RR_main'])}; PnP - Kabsch {main['diff']:+.1f} points "
-                     f"[{ci[0]:+.1f}, {ci[1]:+.1f}], {_sig(main['p'])}; median RMSE Kabsch {k['RMSE_median']:.2f} m, "
-                     f"PnP {n['RMSE_median']:.2f} m")
+    if main is not None:  # the same poses at the paper's main RR, looser than an RMSE of a few centimetres
+        tm = r["thresholds_main"]
+        lines.append("  " + verdict_line(f"PnP above Kabsch at the main RR (RE < {tm['RE_deg']:g} deg, TE < "
+                                         f"{tm['TE_m']:g} m)", _v("PnP", n["RR_main"]), _v("Kabsch", k["RR_main"]),
+                                         main["diff"], main["p"], r["n_pairs"], setting)
+                     + f"; median RMSE Kabsch {k['RMSE_median']:.2f} m, PnP {n['RMSE_median']:.2f} m")
     return lines
 
 
@@ -89,7 +93,7 @@ def table11() -> list[str]:
     """Table 11's reading: the paper's FreeReg and FreeReg-Ft rows (Kabsch) beside the micro models'
     committed and fine-tuned numbers with 95 % bootstrap intervals, the paired differences, and a
     last line with the verdict on the claim that fine-tuning on sensor-like depth raises IR and RR."""
-    r = _load(FINETUNE_JSON)
+    r = load(FINETUNE_JSON)
     if r is None:
         return [f"(no committed {FINETUNE_JSON}: run python -m freereg_lib.training.evaluate_finetune)"]
     t = paper.table("table_finetune").set_index(["dataset", "method"])
@@ -110,23 +114,13 @@ def table11() -> list[str]:
         for metric in ("IR", "RR"):
             d = tests[f"{metric} {solver}: finetuned - committed"]
             lines.append(f"    {metric} fine-tuned - committed: {_points(d)}, {_sig(d['p'])}")
-    ir, rr = tests["IR kabsch: finetuned - committed"], tests["RR kabsch: finetuned - committed"]
-    up = ir["diff"] > 0 and rr["diff"] > 0
-    sig = [name for name, d in (("IR", ir), ("RR", rr)) if d["p"] < 0.05]
-    if up and len(sig) == 2:
-        verdict = "holds here (both significantly up)"
-    elif up and sig:  # one of the two claims is carried by the mean alone
-        other = "RR" if sig == ["IR"] else "IR"
-        verdict = f"holds in the mean ({sig[0]} significantly up, {other} not significantly)"
-    elif up:
-        verdict = "holds in the mean only, not significantly"
-    elif ir["diff"] < 0 and rr["diff"] < 0 and ir["p"] < 0.05 and rr["p"] < 0.05:
-        verdict = "does not hold here (both significantly down)"
-    else:
-        verdict = "does not hold here (not both up)"
     dm = t.loc[("3DMatch", "FreeReg-Ft")] - t.loc[("3DMatch", "FreeReg")]
-    lines.append(f"  Verdict, fine-tuning raises IR and RR (Kabsch): {verdict}: IR {ir['diff']:+.1f}, RR "
-                 f"{rr['diff']:+.1f} points; the paper on 3DMatch: IR {dm['IR']:+.1f}, RR {dm['RR']:+.1f}")
+    for metric in ("IR", "RR"):
+        d = tests[f"{metric} kabsch: finetuned - committed"]
+        lines.append("  " + verdict_line(f"fine-tuning raises {metric} (Kabsch; the paper on 3DMatch: "
+                                         f"{dm[metric]:+.1f} points)", _v("fine-tuned", res["finetuned kabsch"][metric]),
+                                         _v("committed", res["committed kabsch"][metric]), d["diff"], d["p"],
+                                         r["n_pairs"], "micro backend, Kabsch"))
     return lines
 
 
@@ -134,7 +128,7 @@ def table6() -> list[str]:
     """Table 6's reading: the paper's rows (the other backbones against FreeReg) beside the micro
     models' stand-in, FreeReg-D and fused FreeReg (Kabsch) with 95 % bootstrap intervals, and a last
     line with the verdict on the claim that the other backbone's IR is well below FreeReg's."""
-    r = _load(OTHER_BACKBONES_JSON)
+    r = load(OTHER_BACKBONES_JSON)
     if r is None:
         return [f"(no committed {OTHER_BACKBONES_JSON}: run python -m freereg_lib.training.other_backbones)"]
     t = paper.table("table_other_backbones").set_index("method")
@@ -155,37 +149,27 @@ def table6() -> list[str]:
     for other in ("freereg", "freereg_d"):
         d = tests[f"IR: standin - {other}"]
         lines.append(f"  IR stand-in - {res[other + ' kabsch']['label']}: {_points(d)}, {_sig(d['p'])}")
-    verdict, d, ratio, paper_ratio = _table6_verdict(r)
-    lines.append(f"  Verdict, an RGB-trained backbone on the depth map as an image is well below FreeReg in IR: "
-                 f"{verdict}: stand-in - FreeReg {d['diff']:+.1f} points, the stand-in at {100 * ratio:.0f} % of "
-                 f"FreeReg's IR; the paper: {best} - FreeReg {-paper_gap:+.1f} points, {100 * paper_ratio:.0f} % "
-                 "of FreeReg's IR")
+    word, d, ratio, paper_ratio = _table6_verdict(r)
+    lines.append("  " + verdict_line("an RGB-trained backbone on the depth map as an image below FreeReg in IR",
+                                     _v("stand-in", res["standin kabsch"]["IR"]), _v("FreeReg", res["freereg kabsch"]["IR"]),
+                                     d["diff"], d["p"], r["n_pairs"], "micro backend, Kabsch", expected_sign=-1)
+                 + f"; the stand-in at {100 * ratio:.0f} % of FreeReg's IR (the paper: {best} at "
+                 f"{100 * paper_ratio:.0f} %, {-paper_gap:+.1f} points)")
     return lines
 
 
 def _table6_verdict(r: dict) -> tuple[str, dict, float, float]:
-    """``(verdict, the paired IR test stand-in - FreeReg, stand-in IR / FreeReg IR, the paper's
+    """``(verdict word, the paired IR test stand-in - FreeReg, stand-in IR / FreeReg IR, the paper's
     best other backbone's IR / FreeReg's)`` of a committed :mod:`.other_backbones` run."""
     t = paper.table("table_other_backbones").set_index("method")
     paper_ratio = float(t.drop(index="FreeReg")["IR"].max() / t.loc["FreeReg", "IR"])
     res, d = r["results"], r["tests"]["IR: standin - freereg"]
     ir_s, ir_f = res["standin kabsch"]["IR"]["mean"], res["freereg kabsch"]["IR"]["mean"]
     ratio = ir_s / ir_f if ir_f > 0 else float("nan")
-    below = d["diff"] < 0 and d["p"] < 0.05
-    # "Well below" on the micro models' own scale: their FreeReg's IR is not the paper's, so the
-    # paper's gap in points cannot be asked of them; the share of FreeReg's IR can.
-    if below and ratio <= 0.5:
-        verdict = "holds here (significantly below, at most half of FreeReg's IR)"
-    elif below:
-        verdict = "holds in direction only (significantly below, but more than half of FreeReg's IR)"
-    elif d["diff"] < 0:
-        verdict = "not shown here: below in the mean, not significantly"
-    else:
-        verdict = "does not hold here"
-    return verdict, d, ratio, paper_ratio
+    return verdict(d["diff"], d["p"], r["n_pairs"], expected_sign=-1), d, ratio, paper_ratio
 
 
 def table6_verdict() -> str | None:
-    """The verdict words of :func:`table6`'s last line (None without the committed run)."""
-    r = _load(OTHER_BACKBONES_JSON)
+    """The verdict word of :func:`table6`'s last line (None without the committed run)."""
+    r = load(OTHER_BACKBONES_JSON)
     return None if r is None else _table6_verdict(r)[0]
