@@ -19,7 +19,7 @@ committed models and config, and compares
 
 It prints one line ("this machine reproduces the committed results: ...") and writes
 ``agreement.json`` and ``agreement.md`` (per pair and field, per verdict) with the recomputed rows
-(``rows.jsonl``, resumed when the command is run again) in ``--out``. ``make reproduce`` runs it on
+(``rows/<k>.jsonl``, kept: a pair already there is not recomputed when the command runs again) in ``--out``. ``make reproduce`` runs it on
 10 pairs. Exit status: 0 when every verdict is unchanged, 1 when one changed, 2 on bad arguments.
 """
 from __future__ import annotations
@@ -71,30 +71,52 @@ def load_committed(path: Path) -> dict:
     return res
 
 
-def recompute(ks: list[int], rows_path: Path, jobs: int = 1, progress: bool = True) -> list[dict]:
-    """The rows of the test split's pairs ``ks`` (:func:`~freereg_lib.training.evaluate_split.run`),
-    ``jobs`` processes side by side, appended to ``rows_path`` (one file a process) and resumed."""
+def _quiet_worker(log: Path) -> None:
+    """A recomputing process: no model-loading progress bars, its standard error to ``log``."""
+    import os
+
+    fd = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+    os.dup2(fd, 2)
+    os.close(fd)
+    from diffusers.utils import logging as diffusers_logging
+    from transformers.utils import logging as transformers_logging
+
+    transformers_logging.disable_progress_bar()
+    diffusers_logging.disable_progress_bar()
+
+
+def _one_pair(k: int, folder: Path) -> None:
     from freereg_lib.training import evaluate_split
 
-    paths = [rows_path.with_name(f"{rows_path.stem}_{j}{rows_path.suffix}") for j in range(jobs)]
-    if jobs == 1:
-        evaluate_split.run("test", max(ks) + 1, paths[0], ks=ks, progress=progress)
-    else:
-        from concurrent.futures import ProcessPoolExecutor
+    evaluate_split.run("test", k + 1, folder / f"{k}.jsonl", ks=[k], progress=False)
 
-        with ProcessPoolExecutor(max_workers=jobs) as pool:
-            futures = [pool.submit(evaluate_split.run, "test", max(ks) + 1, paths[j], ks=ks[j::jobs], progress=progress)
-                       for j in range(jobs)]
-            for fut in futures:
+
+def recompute(ks: list[int], folder: Path, jobs: int = 1, progress: bool = True) -> list[dict]:
+    """The rows of the test split's pairs ``ks`` (:func:`~freereg_lib.training.evaluate_split.run`),
+    ``jobs`` processes side by side, one file a pair in ``folder`` (``<k>.jsonl``; a pair already
+    there is not recomputed)."""
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    from tqdm.auto import tqdm
+
+    folder.mkdir(parents=True, exist_ok=True)
+
+    def done(k: int) -> bool:
+        path = folder / f"{k}.jsonl"
+        return path.is_file() and bool(path.read_text().strip())
+
+    todo = [k for k in ks if not done(k)]
+    if todo:
+        with ProcessPoolExecutor(max_workers=jobs, initializer=_quiet_worker, initargs=(folder / "workers.log",)) as pool:
+            futures = [pool.submit(_one_pair, k, folder) for k in todo]
+            for fut in tqdm(as_completed(futures), total=len(futures), desc="committed pairs recomputed",
+                            disable=not progress):
                 fut.result()
-    recs = {}
-    for path in paths:
-        if path.exists():
-            for line in path.read_text().splitlines():
-                if line.strip():
-                    rec = json.loads(line)
-                    recs.setdefault(rec["k"], rec)
-    return [recs[k] for k in ks if k in recs]
+    recs = []
+    for k in ks:
+        lines = [line for line in (folder / f"{k}.jsonl").read_text().splitlines() if line.strip()]
+        recs.append(json.loads(lines[0]))
+    return recs
 
 
 def _field(committed: dict, key: str, k: int) -> tuple:
@@ -208,7 +230,7 @@ def check(n_pairs: int, out: Path, committed_path: Path, jobs: int = 1, progress
     ks = sample_pairs(committed["n_pairs"], n_pairs)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    recs = recompute(ks, out / "rows.jsonl", jobs, progress)
+    recs = recompute(ks, out / "rows", jobs, progress)
     pairs = [compare_pair(committed, rec) for rec in recs]
     verdicts = compare_verdicts(committed, recs)
     line = summary_line(pairs, verdicts)

@@ -7,6 +7,8 @@ beside the paper's. Then it renders the
 executed notebooks as a book (``<out>/site/index.html``, :mod:`freereg_lib.commands.book`) and rewrites
 the README's gallery (``figures/gallery/``, :mod:`freereg_lib.commands.gallery`) from the figures of the run;
 ``--no-book`` skips both.
+It ends by checking this machine against the committed test split (``--check-pairs`` of its pairs
+recomputed, :mod:`freereg_lib.commands.agreement`) and prints the agreement line.
 ``--quick`` skips the notebooks and registers a handful of synthetic pairs directly.
 """
 from __future__ import annotations
@@ -37,6 +39,15 @@ def quick(n_pairs: int, seed: int) -> None:
     print(f"\nFreeReg on {n_pairs} synthetic indoor pairs, backend: {backend.label}; "
           f"Kabsch-RANSAC scoring {cfg.kabsch_scoring!r}")
     print(table[cols].to_markdown(index=False, floatfmt=".1f"))
+
+
+def _quiet_worker(log: Path) -> None:
+    """Send a notebook worker's standard error, and its kernels' (they inherit it), to ``log``: the
+    kernels' own chatter ("Kernel is running over TCP without encryption", "No handler found for comm
+    target") is not the run's progress; a notebook's error still reaches the run through papermill."""
+    fd = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+    os.dup2(fd, 2)
+    os.close(fd)
 
 
 def _execute(nb: Path, target: Path, seed: int, out_dir: Path) -> tuple[float, str | None]:
@@ -70,7 +81,7 @@ def notebooks(out: Path, seed: int, jobs: int | None = None) -> int:
     books = sorted(NOTEBOOKS.glob("[0-9][0-9]_*.ipynb"))
     jobs = max(1, min(jobs or os.cpu_count() or 1, len(books)))
     failed, seconds = [], {}
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
+    with ProcessPoolExecutor(max_workers=jobs, initializer=_quiet_worker, initargs=(out / "kernels.log",)) as pool:
         futures = {pool.submit(_execute, nb, out / nb.name, seed, out / nb.stem): nb for nb in books}
         for fut in tqdm(as_completed(futures), total=len(futures), desc=f"notebooks ({jobs} at a time)"):
             nb = futures[fut]
@@ -84,12 +95,40 @@ def notebooks(out: Path, seed: int, jobs: int | None = None) -> int:
         tables = sorted((out / stem).glob("*.csv")) if (out / stem).is_dir() else []
         if tables:
             print(f"Tables of {stem}: " + ", ".join(str(t.relative_to(out)) for t in tables))
+    print("\n" + committed_table1())
     bench = out / "04_benchmark" / "table1_side_by_side.md"
     if bench.is_file():
-        print("\n" + bench.read_text())
+        print("\nA glimpse, no verdict: this run's live pairs (a pair moves RR by 100 / n points, and which pair "
+              "flips depends on the CPU: docs/reproducibility.md)\n\n" + bench.read_text())
     for name, why in failed:
         print(f"FAILED {name}: {why}", file=sys.stderr)
     return len(failed)
+
+
+def committed_table1() -> str:
+    """Table 1 of the committed test split (the verdict, with intervals), as Markdown."""
+    from freereg_lib.data import paper
+    from freereg_lib.report import committed_charts
+
+    split = committed_charts.committed("test_split.json")
+    if split is None:
+        return "(no committed test split: python -m freereg_lib.training.evaluate_split)"
+    return committed_charts.table1_markdown(split, paper.table("table1_main"))
+
+
+def agreement(out: Path, n_pairs: int, jobs: int | None) -> bool:
+    """This machine against the committed test split on ``n_pairs`` of its pairs
+    (:mod:`freereg_lib.commands.agreement`): prints the agreement line; False when a verdict changed."""
+    from freereg_lib.commands import agreement as check
+    from freereg_lib.models.micro.diffusion import WEIGHTS_DIR
+
+    jobs = max(1, min(jobs or os.cpu_count() or 1, n_pairs))
+    print(f"\nChecking this machine against the committed test split: {n_pairs} of its pairs recomputed "
+          f"({jobs} at a time)")
+    line, result = check.check(n_pairs, out / "agreement", Path(WEIGHTS_DIR) / "test_split.json", jobs)
+    print(f"{line}\n(details: {out / 'agreement' / 'agreement.md'}; all 100 pairs: "
+          f"python -m freereg_lib.commands.agreement --pairs 100)")
+    return all(v["unchanged"] for v in result["verdicts"].values())
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -99,16 +138,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="skip the notebooks; register synthetic pairs directly")
     ap.add_argument("--pairs", type=int, default=6, help="pairs for --quick")
     ap.add_argument("--no-book", action="store_true", help="do not write the site and the README's gallery")
+    ap.add_argument("--check-pairs", type=int, default=10,
+                    help="committed test-split pairs recomputed to check this machine against them (0: no check)")
     ap.add_argument("--jobs", type=int, default=None,
                     help="notebooks run side by side (default: one a core); each kernel's models use one thread")
     args = ap.parse_args(argv)
     if args.jobs is not None and args.jobs < 1:
         ap.error(f"--jobs must be at least 1, got {args.jobs}")
+    if args.check_pairs < 0:
+        ap.error(f"--check-pairs must be 0 or more, got {args.check_pairs}")
     if args.quick or not any(NOTEBOOKS.glob("[0-9][0-9]_*.ipynb")):
         quick(args.pairs, args.seed)
         return 0
     out = Path(args.out).resolve()
     failed = notebooks(out, args.seed, args.jobs)
+    if args.check_pairs:
+        agreement(out, args.check_pairs, args.jobs)
     if not args.no_book:
         from freereg_lib.commands.book import BookError
 
