@@ -332,4 +332,9 @@ def register_command(args) -> int:
     print(reg.T_pc_cam)
     print(f"wrote {', '.join(str(p) for p in paths.values())} ({reg.seconds:.1f} s)")
     print(f"result: {reg.result}")
+    if not reg.registered:  # name the inputs that fail this way when they are wrong, the intrinsics first
+        K_flag = "--K" if args.K is not None else (f"--intrinsics {args.intrinsics}" if args.intrinsics
+                                                     else "of the demo layout")
+        print(UI.failure_hint(pair, reg.scale if reg.solver == "kabsch" else None, K_flag,
+                              f"--depth-scale {args.depth_scale:g}" if args.image_depth else None))
     return 3 if args.strict and not reg.registered else 0
