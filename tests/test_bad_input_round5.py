@@ -274,3 +274,21 @@ def test_every_training_command_refuses_a_damaged_weights_folder_first(tmp_path,
         (mod.parse_args if hasattr(mod, "parse_args") else mod.main)(argv)
     err = capsys.readouterr().err
     assert info.value.code == 2 and "does not match its checksum" in err and "Traceback" not in err, err
+
+
+def test_a_failed_registration_names_the_intrinsics_and_what_its_scale_says(tmp_path, capsys):
+    """Round 4: a focal length off by 2x was reported as FAILED with no word of K."""
+    from freereg_lib.data.datasets.icl import ICLSample
+    from freereg_lib.report import pair_files as PF
+
+    pair = PF.downscale_pair(ICLSample().pair(10, 40), 0.25)
+    paths = PF.write_user_files(pair, tmp_path / "in")
+    K = [f"{v:.6f}" for v in (2 * pair.K_image[0, 0], 2 * pair.K_image[1, 1], pair.K_image[0, 2], pair.K_image[1, 2])]
+    rc = cli.main(["register", str(paths["image"]), str(paths["cloud"]), "--K", *K, "--image-depth",
+                   str(paths["image_depth"]), "--backend", "stub", "--ransac-iters", "200", "--views", "1",
+                   "--out", str(tmp_path / "out")])
+    out = capsys.readouterr().out
+    assert rc == 0 and "result: FAILED" in out, out[-600:]
+    check = next(line for line in out.splitlines() if line.startswith("check: "))
+    assert "the intrinsics --K (fx 262.5" in check and "--depth-scale 1000" in check, check
+    assert "the scale 0.48 makes the image side 2.1x smaller" in check, check

@@ -83,6 +83,24 @@ def output_fault(out: Path) -> str:
     return ""
 
 
+def failure_hint(pair: Pair, scale: float | None, K_flag: str, depth_flag: str | None) -> str:
+    """The line ``freereg register`` prints under a FAILED result: the inputs that fail this way when
+    they are wrong, the intrinsics first (named with the field of view they give), and what a Kabsch
+    similarity's ``scale`` far from 1 says (the image side ``1 / scale`` times too near or far: a
+    focal length or a depth unit off by that factor)."""
+    H, W = pair.image_size
+    fx, fy = float(pair.K_image[0, 0]), float(pair.K_image[1, 1])
+    fov = (2 * np.degrees(np.arctan(W / (2 * fx))), 2 * np.degrees(np.arctan(H / (2 * fy))))
+    line = (f"check: the intrinsics {K_flag} (fx {fx:.1f}, fy {fy:.1f}: a {fov[0]:.0f} x {fov[1]:.0f} deg field of view "
+            f"for {W} x {H})" + (f" and the depth units {depth_flag}" if depth_flag else "")
+            + ": a wrong focal length or depth unit fails this way")
+    if scale is not None and np.isfinite(scale) and scale > 0 and not 0.8 <= scale <= 1.25:
+        factor = 1 / scale if scale < 1 else scale
+        line += (f"; the scale {scale:.2f} makes the image side {factor:.1f}x {'smaller' if scale < 1 else 'larger'} "
+                 "than the cloud: a focal length or a depth unit off by about that factor")
+    return line
+
+
 def read_pose(path: str | Path | None, what: str) -> np.ndarray | None:
     """A 4 x 4 rigid pose from a text file (``identity`` gives the identity), checked."""
     if path is None:
