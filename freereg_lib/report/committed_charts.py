@@ -288,3 +288,22 @@ def table1_markdown(split: dict, paper_table, reference: str = "3DMatch") -> str
         lines.append(f"| {m} | {s} | {' | '.join(cells)} |")
     return (f"Table 1 (main results), the verdict: {caption(split)}; paper: {reference}. FMR, IR, RR in % "
             f"[95 % interval].\n\n" + "\n".join(lines))
+
+
+def paper_gaps(split: dict, paper_table, reference: str = "3DMatch", metrics=("FMR", "IR", "RR")) -> list[str]:
+    """One line per Table 1 column: each FreeReg variant the paper reports, the committed value with
+    its interval against the paper's on ``reference``, and the gap in points."""
+    paper_rows = paper_table[paper_table["dataset"] == reference].assign(solver=lambda t: t["solver"].str.lower())
+    paper_of = {(r.method, r.solver): r for r in paper_rows.itertuples()}
+    lines = []
+    for metric in metrics:
+        parts = []
+        for m, s in VARIANTS:
+            theirs = getattr(paper_of.get((m, s)), metric, float("nan"))
+            if theirs != theirs:  # the paper has no such row
+                continue
+            v = split["results"][f"{m} {s}"][metric]
+            parts.append(f"{m} + {s} {v['mean']:.1f} [{v['ci'][0]:.1f}, {v['ci'][1]:.1f}] vs {theirs:.1f} "
+                         f"({v['mean'] - theirs:+.1f})")
+        lines.append(f"{metric}: " + "; ".join(parts))
+    return lines
