@@ -292,3 +292,19 @@ def test_a_failed_registration_names_the_intrinsics_and_what_its_scale_says(tmp_
     check = next(line for line in out.splitlines() if line.startswith("check: "))
     assert "the intrinsics --K (fx 262.5" in check and "--depth-scale 1000" in check, check
     assert "the scale 0.48 makes the image side 2.1x smaller" in check, check
+
+
+def test_depth_in_other_units_without_ground_truth_names_the_units(tmp_path, capsys):
+    """Round 4: an image depth in 2x units, no ground truth: FAILED, the units not named."""
+    from freereg_lib.data.datasets.icl import ICLSample
+    from freereg_lib.report import pair_files as PF
+
+    pair = PF.downscale_pair(ICLSample().pair(10, 40), 0.25)
+    paths = PF.write_user_files(pair, tmp_path / "in")
+    K = [f"{v:.6f}" for v in (pair.K_image[0, 0], pair.K_image[1, 1], pair.K_image[0, 2], pair.K_image[1, 2])]
+    rc = cli.main(["register", str(paths["image"]), str(paths["cloud"]), "--K", *K, "--image-depth",
+                   str(paths["image_depth"]), "--depth-scale", "2000", "--backend", "stub", "--ransac-iters", "200",
+                   "--views", "1", "--out", str(tmp_path / "out")])
+    out = capsys.readouterr().out
+    assert rc == 0 and "result: FAILED" in out, out[-600:]
+    assert "and the depth units --depth-scale 2000: a wrong focal length or depth unit fails this way" in out
