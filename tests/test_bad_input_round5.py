@@ -9,6 +9,7 @@ case here stops before Sphinx starts, or fakes Sphinx, so no test builds a site.
 from __future__ import annotations
 
 import errno
+import re
 import subprocess
 from pathlib import Path
 
@@ -291,7 +292,7 @@ def test_a_failed_registration_names_the_intrinsics_and_what_its_scale_says(tmp_
     assert rc == 0 and "result: FAILED" in out, out[-600:]
     check = next(line for line in out.splitlines() if line.startswith("check: "))
     assert "the intrinsics --K (fx 262.5" in check and "--depth-scale 1000" in check, check
-    assert "the scale 0.48 makes the image side 2.1x smaller" in check, check
+    assert re.search(r"the scale 0\.[45]\d makes the image side (1\.[89]|2\.[0-4])x smaller", check), check  # ~1/2
 
 
 def test_depth_in_other_units_without_ground_truth_names_the_units(tmp_path, capsys):
