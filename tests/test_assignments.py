@@ -179,8 +179,7 @@ def test_dist_hands_out_what_the_notebooks_import_and_no_answer_key_or_grader(ha
     names = zipfile.ZipFile(archive).namelist()
     assert "handout/notebooks/03_fusion.ipynb" in names and not any("/tests/" in n for n in names)
     # Every import of every notebook resolves inside the handout, without the project.
-    imports = sorted({line.strip() for p in (out / "notebooks").glob("*.ipynb") for c in _read_cells(p)
-                      for line in c.source.splitlines() if line.strip().startswith(("from freereg_lib", "import freereg_lib"))})
+    imports = sorted({i for p in (out / "notebooks").glob("*.ipynb") for c in _read_cells(p) for i in _imports(c.source)})
     code = "import freereg_lib, sys\n" + "\n".join(imports) + "\nprint(freereg_lib.__file__)"
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=out / "notebooks",
                           env={**os.environ, "PYTHONPATH": str(out)})
@@ -194,6 +193,21 @@ def test_dist_hands_out_what_the_notebooks_import_and_no_answer_key_or_grader(ha
 
 def _read_cells(path):
     return [c for c in nbformat.read(path, as_version=4).cells if c.cell_type == "code"]
+
+
+def _imports(source: str) -> set[str]:
+    """The imports of freereg_lib in a cell, one statement each (a parenthesised one spans lines)."""
+    try:
+        tree = ast.parse(N._python(source))
+    except SyntaxError:
+        return set()
+    found = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and not node.level and (node.module or "").split(".")[0] == "freereg_lib":
+            found.add(f"from {node.module} import {', '.join(a.name for a in node.names)}")
+        elif isinstance(node, ast.Import):
+            found |= {f"import {a.name}" for a in node.names if a.name.split(".")[0] == "freereg_lib"}
+    return found
 
 
 def test_stub_source_handles_hint_comments_decorators_and_one_liners():
