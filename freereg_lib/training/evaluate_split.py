@@ -202,12 +202,13 @@ def summarize(recs: list[dict], split_name: str) -> dict:
         rows = [next(r for r in rec["rows"] if r["method"] == m and r["solver"] == s) for rec in recs]
         ir = [r["IR"] for r in rows]
         reg = [float(bool(r["registered"])) for r in rows]
-        ladder = {}
+        ladder, ladder_per_pair = {}, {}
         for deg, metres in cfg.rr_ladder:  # Table 9's rungs from each pair's RE / TE (a failed pose: None)
-            ok = [r["RE"] is not None and r["TE"] is not None and r["RE"] < deg and r["TE"] < metres for r in rows]
+            ok = [int(r["RE"] is not None and r["TE"] is not None and r["RE"] < deg and r["TE"] < metres) for r in rows]
             ladder[f"RR@{deg:g}deg/{metres:g}m"] = 100 * float(np.mean(ok))
+            ladder_per_pair[f"RR@{deg:g}deg/{metres:g}m"] = ok
         per[f"{m} {s}"] = {"IR": _stat(ir), "FMR": _stat(np.asarray(ir) > cfg.fmr_ratio), "RR": _stat(reg),
-                           "ladder": ladder,
+                           "ladder": ladder, "ladder_per_pair": ladder_per_pair,
                            "errors": sum(1 for r in rows if r["error"]),
                            "IR_per_pair": ir, "registered_per_pair": [int(x) for x in reg]}
     tests = {}
