@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from freereg_lib.report.committed_charts import wilson_interval
 from freereg_lib.report.vocabulary import Value, verdict, verdict_line
 
 SPLIT_JSON = "test_split.json"
@@ -170,8 +171,8 @@ def table9() -> list[str]:
     for rung, (a, b) in ((rungs[0], (p, k)), (rungs[-1], (k, p))):
         claim = f"{'PnP above Kabsch' if a is p else 'Kabsch above PnP'} at {rung[3:]}"
         pa, pb = a.get("ladder_per_pair", {}).get(rung), b.get("ladder_per_pair", {}).get(rung)
-        va = Value("PnP" if a is p else "Kabsch", a["ladder"][rung])
-        vb = Value("Kabsch" if a is p else "PnP", b["ladder"][rung])
+        va = Value("PnP" if a is p else "Kabsch", a["ladder"][rung], wilson_interval(a["ladder"][rung], r["n_pairs"]))
+        vb = Value("Kabsch" if a is p else "PnP", b["ladder"][rung], wilson_interval(b["ladder"][rung], r["n_pairs"]))
         if pa is None or pb is None:
             lines.append("  " + verdict_line(claim, va, vb, va.value - vb.value, None, r["n_pairs"], at))
         else:
