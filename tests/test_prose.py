@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from freereg_lib.report.prose import Problem, check_notebook, glue_references, stated_numbers
+from freereg_lib.report.prose import Problem, check_notebook, glue_references, stated_numbers, stated_verdicts
 
 nbformat = pytest.importorskip("nbformat")
 
@@ -52,6 +52,20 @@ def test_a_contradiction_in_a_tiny_notebook_is_flagged(markdown, printed, flagge
     assert all(isinstance(p, Problem) and p.cell == 0 and p.cell_id == "prose" for p in problems)
 
 
+@pytest.mark.parametrize("markdown, flagged", [
+    # The contradictions of an earlier round, planted back as hand-typed verdicts.
+    ("PnP at least level with Kabsch at the largest error: holds.", ["holds"]),
+    ("The paper's Table 5 claim (PnP above Kabsch) does not hold here.", ["does not hold"]),
+    ("Fine-tuning raises IR and RR: it holds in the mean.", ["holds"]),
+    ("Fused above both halves: opposite direction.", ["opposite direction"]),
+    # A verb about contents is no verdict.
+    ("The cloud holds no points of that object, and `verdict holds` is code.", []),
+])
+def test_a_verdict_typed_in_prose_is_flagged(markdown, flagged):
+    problems = check_notebook(_tiny(markdown, "opposite direction, significant: PnP 8.5 vs Kabsch 15.0"), "tiny")
+    assert [p.found for p in problems if p.kind == "verdict"] == flagged
+
+
 def test_glued_numbers_paper_numbers_and_names_of_things_pass():
     markdown = ("The descriptors have {glue:text}`channels` channels, and RR is {glue:text}`rr:.1f` %; the paper's "
                 "RR is 63.8 % (Table 1, main results). The layers (0, 4, 6) of Table 2 rows j-m, Sec. 3.4, Fig. 4c, "
@@ -70,6 +84,8 @@ def test_the_committed_notebooks_state_no_number_by_hand_and_glue_what_they_refe
     typed = [(c.get("id"), n, ctx) for c in nb.cells if c.cell_type == "markdown"
              for n, ctx in stated_numbers(c.source, facts)]
     assert not typed, f"{path.name}: numbers typed by hand (glue them, or declare a fact in prose.FACTS): {typed}"
+    verdicts = [(c.get("id"), w, ctx) for c in nb.cells if c.cell_type == "markdown" for w, ctx in stated_verdicts(c.source)]
+    assert not verdicts, f"{path.name}: verdicts typed by hand (print them through the vocabulary): {verdicts}"
     # Every referenced name must be glued by a code cell (an f-string name matches any text in its braces).
     glue_calls = [re.sub(r"\\\{[^}]*\\\}", ".+", re.escape(m.group(1)))
                   for c in nb.cells if c.cell_type == "code"

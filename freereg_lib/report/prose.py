@@ -9,7 +9,9 @@ backend, seed, number of pairs, a retrained model) and then contradicts the outp
 :class:`Problem` s:
 
 * ``number``: a number in a Markdown cell that is neither glued nor one of the exempt kinds below;
-* ``glue``: a ``{glue...}`` reference whose name the run did not glue (the book would fail on it).
+* ``glue``: a ``{glue...}`` reference whose name the run did not glue (the book would fail on it);
+* ``verdict``: a verdict on a claim of the paper typed in prose ("the fusion claim holds here"): verdicts
+  are printed by the run through :mod:`freereg_lib.report.vocabulary`, with their numbers and test.
 
 Exempt, because they do not depend on the run:
 
@@ -56,13 +58,15 @@ class Problem:
 
     cell: int
     cell_id: str
-    kind: str      # "number" | "glue"
-    found: str     # the number as written, or the glue name
+    kind: str      # "number" | "glue" | "verdict"
+    found: str     # the number as written, the glue name, or the verdict words
     context: str   # the words around it
 
     def __str__(self) -> str:
-        what = (f"number {self.found!r} is neither glued nor a declared fact" if self.kind == "number"
-                else f"glue name {self.found!r} was not glued by this run")
+        what = {"number": f"number {self.found!r} is neither glued nor a declared fact",
+                "glue": f"glue name {self.found!r} was not glued by this run",
+                "verdict": f"verdict {self.found!r} typed by hand (a verdict is printed by the run, "
+                           "freereg_lib.report.vocabulary)"}[self.kind]
         return f"cell {self.cell} (id {self.cell_id}): {what}: ...{self.context}..."
 
 
@@ -215,6 +219,21 @@ def stated_numbers(markdown: str, facts: Sequence[Fact] = ()) -> list[tuple[str,
     return found
 
 
+# A verdict stated in prose: the vocabulary's words closing a claim ("the claim holds", "does not hold
+# here", "holds in the mean"); the verb of a sentence about contents ("the cloud holds no point") is not one.
+VERDICT_PROSE = re.compile(r"\b(holds|does not hold|do not hold|same direction, not significant|"
+                           r"opposite direction)(?=\s*(?:$|[.,;:)]|here\b|in the mean\b|on (?:these|this|the)\b))",
+                           re.IGNORECASE | re.MULTILINE)
+
+
+def stated_verdicts(markdown: str) -> list[tuple[str, str]]:
+    """``(verdict words, context)`` for each verdict Markdown states by hand (outside code spans): a
+    verdict comes from the run's printout, where the numbers and the test behind it stand beside it."""
+    text = re.sub(r"`[^`]*`", lambda m: " " * len(m.group()), markdown)
+    return [(m.group(1), " ".join(text[max(0, m.start() - 60):m.end() + 20].split()))
+            for m in VERDICT_PROSE.finditer(text)]
+
+
 def notebook_name(nb: Mapping[str, Any]) -> str:
     """The notebook's stem, from papermill's record of its input (``""`` when unknown)."""
     path = (nb.get("metadata", {}).get("papermill") or {}).get("input_path") or ""
@@ -239,6 +258,7 @@ def check_notebook(nb: Mapping[str, Any], name: str | None = None) -> list[Probl
         cid = str(cell.get("id", ""))
         problems += [Problem(k, cid, "glue", ref, ref) for ref in glue_references(source) if ref not in glued]
         problems += [Problem(k, cid, "number", num, ctx) for num, ctx in stated_numbers(source, facts)]
+        problems += [Problem(k, cid, "verdict", words, ctx) for words, ctx in stated_verdicts(source)]
     return problems
 
 
