@@ -79,8 +79,8 @@ class Pair:
         ``sensor_depth`` / ``depth_frame_gt`` of another size, without one valid pixel, or in other units than the
         cloud (its median more than 50 x or less than 1/50 of the median depth of the cloud
         seen from the depth camera: millimetres vs metres), id maps of the wrong size, and a
-        ``depth_gt`` that ``T_cam_pc`` does not lift onto the cloud where an inverted pose or a
-        depth in other units would (:func:`geometry_fault`).
+        ``depth_gt`` that ``T_cam_pc`` does not lift onto the cloud where a fault named by
+        :func:`geometry_fault` (which says what it cannot tell) would.
 
         Poses off orthonormal by up to 1e-2 (rotations written with few digits) are replaced
         *in this pair* by their nearest rigid pose, with a warning above 1e-4.
@@ -216,12 +216,13 @@ def _units_hint(name: str, ratio: float) -> str:
     return f"they differ by a factor ~{10.0 ** k:g}: one of them is in other units than metres"
 
 
-# The self-consistency of a pair's ground truth: the image's true depth lifted with
-# T_cam_pc must land on the cloud. A share of lifted points within ON_CLOUD spacings of a cloud
-# point below FEW_ON is suspicious; it is a fault only when an inverted pose or a depth in other
-# units lands at least ALT_GAIN times as many, and at least ALT_ON of them (a pair whose image
-# sees little of the cloud lands few points either way and is left alone).
+# The image's true depth lifted with T_cam_pc must land on the cloud. Below SUSPECT_ON of its pixels
+# within ON_CLOUD spacings, a cause is a fault when it lands at least ALT_ON and clearly more
+# (ALT_GAIN x, or twice and 25 points more); with none, when the cloud seen with T_cam_pc covers
+# COVER_ON of the pixels and agrees with depth_gt at under AGREE_MIN (another view's pose or depth:
+# 26-52 % on ICL, good pairs 90-98 %, landing 50-95 %).
 ON_CLOUD, FEW_ON, ALT_ON, ALT_GAIN = 3.0, 0.1, 0.2, 3.0
+SUSPECT_ON, COVER_ON, AGREE_MIN, SEEN_BLOCK = 0.5, 0.5, 0.7, 4
 DEPTH_FAULTS = ((2.0, "depth_gt is half the truth: 2 mm PNG units read as millimetres? (doubled, it lands)"),
                 (0.5, "depth_gt is twice the truth: a depth_scale half too small? (halved, it lands)"),
                 (1 / 3, "depth_gt is 3 x the truth (divided by 3, it lands)"),
@@ -233,12 +234,14 @@ _CONSISTENT: dict = {}  # pairs already found consistent, by a fingerprint (vali
 
 
 def geometry_fault(pair: "Pair", max_points: int = 50_000, max_pixels: int = 3000) -> str:
-    """``""`` when ``pair.depth_gt`` lifted with ``pair.T_cam_pc`` lands on ``pair.points``, or
-    when nothing explains why not; else one line naming the likely cause (an inverted
-    ``T_cam_pc``, a depth in other units) and the numbers compared: the share of lifted pixels
-    within ``ON_CLOUD`` spacings of a cloud point and the median distance, against the cloud's
-    spacing (median distance of a cloud point to its nearest neighbour, on at most
-    ``max_points`` points)."""
+    """``""`` when ``pair.depth_gt`` lifted with ``pair.T_cam_pc`` lands on ``pair.points`` (its pixels
+    within ``ON_CLOUD`` x the cloud's spacing of a point), or when nothing explains why not; else one
+    line naming the cause and the numbers compared: an inverted pose, a transposed rotation, a depth
+    in other units (the standard factors, or the median ratio of the cloud's depth seen with
+    ``T_cam_pc`` to ``depth_gt``: x1.2, x4 ...), or another view's pose or depth (a mirrored depth).
+    It cannot tell a fault the pair's own data reproduce (a cloud back-projected from the same
+    wrongly scaled depth PNG, the 3DMatch layout), a nearby view's pose that still sees the same
+    surfaces, a depth off by a few per cent, nor a pair whose image sees little of the cloud."""
     D = np.asarray(pair.depth_gt, dtype=np.float64)
     T = np.asarray(pair.T_cam_pc, dtype=np.float64)
     pts = np.asarray(pair.points, dtype=np.float64)
@@ -260,20 +263,47 @@ def geometry_fault(pair: "Pair", max_points: int = 50_000, max_pixels: int = 300
         d = tree.query(cameras.transform(cameras.invert(T_cam_pc), cameras.lift(uv, z * factor, pair.K_image)))[0]
         return float(np.mean(d <= ON_CLOUD * spacing)), float(np.median(d))
 
-    on, med = landing(T)
-    if on >= FEW_ON:
+    def consistent() -> str:
         if len(_CONSISTENT) > 256:
             _CONSISTENT.clear()
         _CONSISTENT[key] = True
         return ""
-    alts = [("T_cam_pc looks inverted (its inverse lands it: T_pc_cam given for T_cam_pc?)", landing(cameras.invert(T)))]
+
+    on, med = landing(T)
+    if on >= SUSPECT_ON:
+        return consistent()
+    transposed = T.copy()
+    transposed[:3, :3] = T[:3, :3].T
+    alts = [("T_cam_pc looks inverted (its inverse lands it: T_pc_cam given for T_cam_pc?)", landing(cameras.invert(T))),
+            ("T_cam_pc's rotation looks transposed (R.T with the same translation lands it)", landing(transposed))]
     alts += [(why, landing(T, f)) for f, why in DEPTH_FAULTS]
+    # The cloud's nearest depth per SEEN_BLOCK-pixel block (a subsampled cloud leaves most pixels empty).
+    (H, W), b = D.shape, SEEN_BLOCK
+    uvc, zc = cameras.project(cameras.transform(T, cloud), pair.K_image)
+    with np.errstate(invalid="ignore"):
+        ok = (zc > 1e-6) & (uvc[:, 0] >= 0) & (uvc[:, 0] < W) & (uvc[:, 1] >= 0) & (uvc[:, 1] < H)
+    near = np.full(-(-H // b) * -(-W // b), np.inf)
+    np.minimum.at(near, (uvc[ok, 1] // b).astype(np.int64) * -(-W // b) + (uvc[ok, 0] // b).astype(np.int64), zc[ok])
+    seen = np.where(np.isfinite(near), near, 0.0)[(v[pick] // b) * -(-W // b) + u[pick] // b]
+    both = seen > 0
+    cover = float(np.mean(both))
+    if both.sum() >= 50:
+        ratio = float(np.median(seen[both] / z[both]))  # what depth_gt must be multiplied by
+        standard = any(abs(np.log(ratio / f)) < 0.05 for f, _ in DEPTH_FAULTS)
+        if abs(np.log(ratio)) > 0.05 and not standard and np.isfinite(ratio):
+            alts.append((f"depth_gt is {1 / ratio:.2g} x the truth (x{ratio:.3g}, the median ratio of the cloud's "
+                         f"depth seen with T_cam_pc to it, it lands)", landing(T, ratio)))
     why, (alt_on, alt_med) = max(alts, key=lambda a: a[1][0])
-    if alt_on < max(ALT_ON, ALT_GAIN * on):
-        return ""
-    return (f"depth_gt lifted with T_cam_pc does not land on the point cloud: {on:.1%} of its pixels within "
-            f"{ON_CLOUD:g} x the cloud's spacing {spacing:.3g} m of a point (median distance {med:.3g} m); {why}: "
-            f"then {alt_on:.1%} (median {alt_med:.3g} m)")
+    head = (f"depth_gt lifted with T_cam_pc does not land on the point cloud: {on:.1%} of its pixels within "
+            f"{ON_CLOUD:g} x the cloud's spacing {spacing:.3g} m of a point (median distance {med:.3g} m)")
+    if alt_on >= max(ALT_ON, min(ALT_GAIN * on, on + max(0.25, on))):
+        return f"{head}; {why}: then {alt_on:.1%} (median {alt_med:.3g} m)"
+    agree = float(np.mean(np.abs(seen[both] / z[both] - 1) < 0.1)) if both.any() else 1.0
+    if cover >= COVER_ON and agree < AGREE_MIN:
+        return (f"{head}; T_cam_pc puts the cloud in front of {cover:.0%} of them and its depth agrees with "
+                f"depth_gt (within 10 %) at only {agree:.0%} of those (a consistent pair: 90 % or more): depth_gt "
+                "or T_cam_pc looks like another view's (another pair's pose or depth, or a mirrored depth map)")
+    return consistent()
 
 
 class UnreadablePair:
