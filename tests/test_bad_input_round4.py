@@ -74,16 +74,25 @@ def test_a_bad_fcgf_checkpoint_is_an_input_error(files, tmp_path, capsys, conten
     assert not (tmp_path / "o").exists()
 
 
-def _verdict(n_inliers: int, n_matches: int, solver: str = "kabsch") -> str:
-    res = pose.PoseResult(np.eye(4), True, solver, inliers=np.arange(n_inliers), scale=1.0)
-    return R._verdict(res, {"matches": n_matches, "note": ""}, solver, *R.verdict_thresholds(solver))[1]
+def _verdict(n_inliers: int, nulls: list[int], solver: str = "kabsch", scale: float = 1.0) -> str:
+    from freereg_lib.config import config_for
+    from freereg_lib.pipeline import verdict
+
+    res = pose.PoseResult(np.eye(4), True, solver, inliers=np.arange(n_inliers), scale=scale)
+    return verdict.decide(res, nulls, solver, config_for("demo"))[1]
 
 
 def test_the_verdict_prints_the_numbers_it_compares():
-    assert _verdict(50, 209) == "inlier ratio 23.9% (50 / 209) below 24.0%"  # not "24% below 24%"
-    assert _verdict(2399, 10_000) == "inlier ratio 23.99% (2399 / 10000) below 24.0%"
-    assert _verdict(1499, 20_000, "pnp") == "inlier ratio 7.495% (1499 / 20000) below 7.5%"
-    assert _verdict(47, 100) == "too few inliers (47 < 48)"
+    # The support (inliers over the shuffled matches' best) with its parts, against the fitted least.
+    from freereg_lib.pipeline import verdict
+
+    need = verdict.MIN_SUPPORT["kabsch"]
+    assert _verdict(20, [0, 11, 9, 10]).startswith(
+        f"20 inliers = 1.82 x the 11 the same solver reaches on the matches shuffled (chance; 4 shuffles: "
+        f"0, 11, 9, 10), below {need:g} x")
+    # A null that found no pose counts as the solver's minimum of matches (Kabsch 5, PnP 8).
+    assert "= 1.50 x the 8 " in _verdict(12, [0, 0], "pnp")
+    assert "is outside [0.67, 1.5]" in _verdict(200, [10], scale=1.6)
 
 
 # --------------------------------------------------------------------------------------

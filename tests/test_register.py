@@ -4,8 +4,8 @@
   backend: random weights, the numbers mean nothing): outputs exist, the pose files parse and are
   each other's inverse, the overlay PNG is drawn, RE / TE are printed when the truth is given;
 * a synthetic pair whose cloud comes without its sensor pose registers through the virtual depth
-  cameras (stub backend, FreeReg, Kabsch; the pose is right, the verdict's inlier count calls it
-  FAILED), and the chosen camera is printed;
+  cameras (stub backend, FreeReg, Kabsch; the pose is right and, against the per-run null,
+  REGISTERED), and the chosen camera is printed;
 * bad inputs stop with one line each (exit status 2, no traceback);
 * the console script is declared and the virtual cameras look horizontally with image y down.
 Kabsch runs with fewer iterations than the paper's 50k.
@@ -95,9 +95,9 @@ def test_a_synthetic_cloud_without_its_sensor_pose_registers_through_virtual_cam
     assert "candidate depth cameras" in out and "<- chosen" in out
     assert reg.method == "FreeReg" and reg.errors["registered_gt"], reg.errors
     assert reg.errors["RE"] < 20 and reg.errors["TE"] < 0.5, reg.errors
-    # The verdict's rule, fitted on ICL pairs with 156-500 matches (>= 48 Kabsch inliers,
-    # docs/your_data.md), calls this right pose FAILED: 33 inliers of the virtual view's 87 matches.
-    assert not reg.registered and reg.result.startswith("FAILED: too few inliers (33 < 48)"), reg.result
+    # An absolute inlier count fitted on ICL's 156-500 matches called this right pose FAILED (33
+    # inliers of the virtual view's 87 matches); against the per-run null it is REGISTERED.
+    assert reg.registered and " x the " in reg.result and "matches shuffled" in reg.result, reg.result
 
 
 def test_the_command_picks_a_virtual_camera_for_files_without_a_sensor_pose(tmp_path, capsys):

@@ -3,14 +3,20 @@
 The shipped ICL living-room sample has 22 frames (0, 10, ..., 210). The rule is fitted on the pairs
 within the first half of the trajectory and reported on the pairs within the second half
 (:data:`freereg_lib.commands.verdict_measure.SPLIT`): no frame of one half is in a pair of the
-other. Each pair is run as ``freereg register IMAGE CLOUD --depth-pose identity --image-depth DEPTH
---backend stub`` runs it: the cloud file in its sensor's frame, the setting the command chooses for
-it (``3dmatch``), FreeReg-G with FPFH, the stub's monocular depth and the true depth, Kabsch and
-PnP, 50,000 iterations. A row per (pair, depth, solver), appended to ``--out`` pair by pair (a
-rerun skips the pairs already there)::
+other; ``demo`` reports it on the official demo pair (another sensor, a ScanNet frame; its folder
+with ``--demo``), ``synthetic`` on rendered synthetic rooms (another "sensor": exact depth, a
+thinned cloud, other rooms). Each pair is run as ``freereg register IMAGE CLOUD --depth-pose identity
+--image-depth DEPTH --backend stub`` runs it: the cloud file in its sensor's frame, the setting the
+command chooses for it (``3dmatch``; the demo's own ``demo``), FreeReg-G with FPFH, the stub's
+monocular depth and the true depth, Kabsch and PnP, 50,000 iterations, and the verdict's per-run
+null (:func:`freereg_lib.pipeline.verdict.null_inliers`: the inliers the same solver reaches on the
+matches shuffled, a ``;``-separated count per shuffle). A row per (pair, depth, solver), appended
+to ``--out`` pair by pair (a rerun skips the pairs already there)::
 
     python tools/verdict_holdout.py fit --out tests/fixtures/verdict_icl_fit_rows.csv
     python tools/verdict_holdout.py report --out tests/fixtures/verdict_icl_report_rows.csv
+    python tools/verdict_holdout.py demo --demo path/to/FreeReg/data/demo --out demo_rows.csv
+    python tools/verdict_holdout.py synthetic --pairs 20 --out tests/fixtures/verdict_synthetic_rows.csv
     python -m freereg_lib.commands.verdict_measure --fit tests/fixtures/verdict_icl_fit_rows.csv \\
         --rows tests/fixtures/verdict_icl_report_rows.csv
 """
@@ -24,13 +30,41 @@ import time
 
 import pandas as pd
 
-from freereg_lib.commands.real_frames import run
+from freereg_lib import pipeline
 from freereg_lib.commands.verdict_measure import SPLIT, pairs_within
 from freereg_lib.config import config_for
 from freereg_lib.data.datasets.icl import ICLSample
 from freereg_lib.data.sources import spread
+from freereg_lib.models import get_backend
+from freereg_lib.pipeline import verdict
 
-KEEP = ("depth", "solver", "success", "n_matches", "n_inliers", "scale", "RE", "TE", "seconds")
+KEEP = ("depth", "solver", "success", "n_matches", "n_inliers", "scale", "null_inliers", "RE", "TE", "seconds")
+
+
+def pair_rows(pair, cfg, depths=("stub", "true"), solvers=("kabsch", "pnp")) -> list[dict]:
+    """A row per (depth, solver) of ``pair``: the command's chain, its pose and its per-run null."""
+    backend = get_backend("stub", cfg)
+    rows = []
+    for depth in depths:
+        mono = pair.depth_gt if depth == "true" else backend.mono_depth(pair.image, depth_gt=pair.depth_gt)
+        feats = pipeline.compute_features(pair, backend, cfg, diffusion=False, geometric=True, mono=mono)
+        m = pipeline.match(feats, 0.0)
+        for solver in solvers:
+            t0 = time.perf_counter()
+            res = pipeline.solve(pair, feats, m, cfg, solver)
+            nulls = verdict.null_inliers(pair, feats, m, cfg, solver)
+            seconds = time.perf_counter() - t0
+            scores = pipeline.evaluate(pair, feats, m, res, cfg)
+            rows.append({"pair": pair.name, "depth": depth, "solver": solver, "success": bool(res.success),
+                         "n_matches": len(m), "n_inliers": res.n_inliers, "scale": res.scale,
+                         "null_inliers": ";".join(str(v) for v in nulls), "RE": scores["RE"], "TE": scores["TE"],
+                         "seconds": seconds})
+    return rows
+
+
+def _append(rows: list[dict], out: str) -> None:
+    fresh = not (os.path.exists(out) and os.path.getsize(out))
+    pd.DataFrame(rows).to_csv(out, mode="a", header=fresh, index=False)
 
 
 def half_rows(half: str, out: str, n_pairs: int | None = None, iters: int = 50_000) -> pd.DataFrame:
@@ -48,24 +82,57 @@ def half_rows(half: str, out: str, n_pairs: int | None = None, iters: int = 50_0
         if pair.name in done:
             continue
         t0 = time.perf_counter()
-        rows = [{"pair": r["pair"], "gap": j - i, **{k: r[k] for k in KEEP}}
-                for r in run(depths=("stub", "true"), solvers=("kabsch", "pnp"), cfg=cfg, progress=False, pairs=[pair])]
-        pd.DataFrame(rows).to_csv(out, mode="a", header=not (os.path.exists(out) and os.path.getsize(out)), index=False)
+        _append([{"pair": r["pair"], "gap": j - i, **{k: r[k] for k in KEEP}} for r in pair_rows(pair, cfg)], out)
         print(f"{half} {n}/{len(chosen)} {pair.name}: {time.perf_counter() - t0:.1f} s "
               f"({time.perf_counter() - t_start:.0f} s so far)", flush=True)
     return pd.read_csv(out)
 
 
+def demo_rows(root: str, out: str, iters: int = 50_000) -> pd.DataFrame:
+    """The official demo pair (its own ``demo`` setting), appended to ``out`` unless already there."""
+    from freereg_lib.data.datasets.demo import load_demo_pair
+
+    pair = load_demo_pair(root)
+    done = set(pd.read_csv(out)["pair"]) if os.path.exists(out) and os.path.getsize(out) else set()
+    if pair.name not in done:
+        _append([{"pair": r["pair"], "gap": 0, **{k: r[k] for k in KEEP}}
+                 for r in pair_rows(pair, config_for("demo", ransac_iters=iters))], out)
+    return pd.read_csv(out)
+
+
+def synthetic_rows(out: str, n_pairs: int = 20, iters: int = 50_000) -> pd.DataFrame:
+    """Synthetic indoor pairs (seeds ``0 .. n_pairs - 1``; rendered rooms, their cloud a thinned
+    sample of the surfaces, so the command's ``demo`` setting), appended to ``out`` pair by pair."""
+    from freereg_lib.data import synthetic
+
+    done = set(pd.read_csv(out)["pair"]) if os.path.exists(out) and os.path.getsize(out) else set()
+    cfg = config_for("demo", ransac_iters=iters)
+    for seed in range(n_pairs):
+        pair = synthetic.make_pair("indoor", seed=seed)
+        if pair.name in done:
+            continue
+        _append([{"pair": r["pair"], "gap": 0, **{k: r[k] for k in KEEP}} for r in pair_rows(pair, cfg)], out)
+    return pd.read_csv(out)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("half", choices=sorted(SPLIT))
+    p.add_argument("half", choices=sorted(SPLIT) + ["demo", "synthetic"])
     p.add_argument("--pairs", type=int, help="pairs spread over the half's list (default: all)")
     p.add_argument("--iters", type=int, default=50_000)
+    p.add_argument("--demo", metavar="DIR", help="the official demo folder (FreeReg/data/demo), for 'demo'")
     p.add_argument("--out", required=True, help="the rows as CSV (appended to)")
     a = p.parse_args(argv)
     if (a.pairs is not None and a.pairs < 1) or a.iters < 1:
         p.error("--pairs and --iters must be >= 1")
-    half_rows(a.half, a.out, a.pairs, a.iters)
+    if a.half == "demo":
+        if not a.demo:
+            p.error("demo needs --demo DIR (the official demo folder)")
+        demo_rows(a.demo, a.out, a.iters)
+    elif a.half == "synthetic":
+        synthetic_rows(a.out, a.pairs or 20, a.iters)
+    else:
+        half_rows(a.half, a.out, a.pairs, a.iters)
     return 0
 
 

@@ -1,12 +1,14 @@
 """How often is ``freereg register``'s verdict wrong? Fitted on some real frames, reported on others.
 
-The command says ``REGISTERED`` or ``FAILED`` without ground truth (:func:`freereg_lib.pipeline.register._verdict`:
-enough RANSAC inliers, enough of the matches, a plausible Kabsch scale). Its thresholds are
+The command says ``REGISTERED`` or ``FAILED`` without ground truth (:mod:`freereg_lib.pipeline.verdict`:
+a plausible Kabsch scale and a **support**, the pose's inliers over what the same solver reaches on
+the matches shuffled, computed per run). Its one fitted constant per solver, ``MIN_SUPPORT``, is
 :func:`fit_rule` of rows measured on the pairs within the first half of the shipped ICL living-room
 trajectory, and its error rates are counted on the pairs within the second half (:data:`SPLIT`: no
-frame is in both). ``tools/verdict_holdout.py`` writes the rows (each pair as ``freereg register
-IMAGE CLOUD --depth-pose identity --image-depth DEPTH --backend stub`` runs it, with the stub's
-monocular depth and with the true depth, by Kabsch and by PnP); this counts
+frame is in both) and on the official demo (another sensor). ``tools/verdict_holdout.py`` writes
+the rows (each pair as ``freereg register IMAGE CLOUD --depth-pose identity --image-depth DEPTH
+--backend stub`` runs it, with the stub's monocular depth and with the true depth, by Kabsch and by
+PnP, with the per-run null); this counts
 
 * false negatives: ``FAILED`` for a pose within (5 deg, 0.1 m) of the truth (:data:`GOOD`);
 * false positives: ``REGISTERED`` for a pose outside the paper's (20 deg, 0.5 m) (:data:`WRONG`),
@@ -34,9 +36,7 @@ WRONG = (20.0, 0.5)     # a pose outside the paper's RR thresholds must not be c
 SPLIT = {"fit": tuple(range(0, 101, 10)), "report": tuple(range(110, 211, 10))}
 GAPS = (10, 100)  # frame gaps of the pairs within a half: all of them
 
-MARGIN = 0.8        # the fitted thresholds sit a fifth below the weakest right pose (fit_rule)
-RATIO_STEP = 0.005  # the inlier ratio threshold is rounded down to half a percent
-SCALE_STEP = 0.05   # the scale bound is rounded up to 0.05
+SUPPORT_STEP = 0.25  # the fitted support is the next quarter above the strongest wrong fit pose
 SOLVERS = ("kabsch", "pnp")
 
 
@@ -48,7 +48,7 @@ def pairs_within(frames, min_gap: int = GAPS[0], max_gap: int = GAPS[1]) -> list
 
 def frames_of(table) -> set[int]:
     """The ICL frame numbers in the ``pair`` column (``icl/00000-00010``) of ``table``."""
-    return {int(f) for name in table["pair"] for f in name.split("/")[-1].split("-")}
+    return {int(f) for name in table["pair"] if str(name).startswith("icl/") for f in name.split("/")[-1].split("-")}
 
 
 def _good(table) -> np.ndarray:
@@ -61,66 +61,78 @@ def _wrong(table) -> np.ndarray:
         return ~((table["RE"] < WRONG[0]) & (table["TE"] < WRONG[1])).to_numpy()
 
 
+def _config():
+    from freereg_lib.config import config_for
+
+    return config_for("3dmatch")  # the solvers' minimum matches (the null's floor) are every setting's
+
+
+def nulls_of(cell) -> list[int]:
+    """The ``null_inliers`` cell (``"0;11;11;11"``) as counts."""
+    text = "" if cell is None or (isinstance(cell, float) and math.isnan(cell)) else str(cell)
+    return [int(float(v)) for v in text.split(";") if v.strip()]
+
+
+def supports(table) -> np.ndarray:
+    """Each row's support: its inliers over its null (:func:`freereg_lib.pipeline.verdict.null_of`)."""
+    from freereg_lib.pipeline import verdict
+
+    cfg = _config()
+    return np.array([int(r["n_inliers"]) / verdict.null_of(nulls_of(r["null_inliers"]), r["solver"], cfg)
+                     for r in table.to_dict("records")], dtype=float)
+
+
 def fit_rule(table) -> dict:
-    """The verdict's thresholds fitted on ``table`` (rows with the columns ``solver, success,
-    n_matches, n_inliers, scale, RE, TE``): ``{"min_inliers": {solver: int}, "min_ratio": {solver:
-    float}, "max_scale": float}``, as :mod:`freereg_lib.pipeline.register` holds them.
+    """The verdict's ``MIN_SUPPORT`` fitted on ``table`` (rows with the columns ``solver, success,
+    n_matches, n_inliers, scale, null_inliers, RE, TE``): ``{"min_support": {solver: float},
+    "max_scale": float}``, as :mod:`freereg_lib.pipeline.verdict` holds them.
 
-    The criterion: the largest thresholds that call every right pose of ``table`` (a solved pose
-    within :data:`GOOD`, (5 deg, 0.1 m), of the truth) ``REGISTERED`` with a safety margin, so
-    that as many wrong poses as that allows are called ``FAILED``. Per solver, over its right
-    poses (both depths):
+    The criterion puts false positives first: per solver, the smallest support on a grid of
+    :data:`SUPPORT_STEP` that lies above every wrong pose of ``table`` (solved, outside
+    :data:`WRONG`, (20 deg, 0.5 m), with a Kabsch scale the verdict's bound lets through), so no
+    wrong fit pose is called REGISTERED and as few right ones as that allows are called FAILED.
+    ``max_scale`` is not fitted (a sanity bound, :data:`freereg_lib.pipeline.verdict.MAX_SCALE`).
+    Deterministic: no search, no randomness."""
+    from freereg_lib.pipeline import verdict
 
-    * ``min_inliers``: :data:`MARGIN` (0.8) times the fewest inliers, rounded down;
-    * ``min_ratio``: 0.8 times the smallest inlier ratio (inliers / matches), rounded down to
-      half a percent (:data:`RATIO_STEP`);
-    * ``max_scale`` (Kabsch's similarity; PnP has none): the scale farthest from 1 (as
-      ``max(s, 1 / s)``) with its logarithm widened by 1 / 0.8, rounded up to 0.05.
-
-    Each threshold only rejects more poses as it rises (the scale bound as it tightens), and
-    each right pose passes each one, so these are the largest admissible and reject every wrong
-    pose any admissible rule rejects. Deterministic: no search, no randomness."""
-    out: dict = {"min_inliers": {}, "min_ratio": {}}
-    good = _good(table) & table["success"].astype(bool).to_numpy()
+    out: dict = {"min_support": {}, "max_scale": verdict.MAX_SCALE}
+    sup = supports(table)
+    wrong = _wrong(table) & table["success"].astype(bool).to_numpy()
+    scale = table["scale"].to_numpy(dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        plausible = np.maximum(scale, 1 / scale) <= verdict.MAX_SCALE
     for solver in SOLVERS:
-        right = table[good & (table["solver"] == solver).to_numpy()]
-        if right.empty:
+        mine = (table["solver"] == solver).to_numpy()
+        if not (mine & _good(table)).any():
             raise ValueError(f"no right {solver} pose to fit the verdict on")
-        inliers = right["n_inliers"].to_numpy(dtype=float)
-        ratio = inliers / right["n_matches"].to_numpy(dtype=float)
-        out["min_inliers"][solver] = math.floor(MARGIN * inliers.min() + 1e-9)
-        out["min_ratio"][solver] = round(math.floor(MARGIN * ratio.min() / RATIO_STEP + 1e-9) * RATIO_STEP, 4)
-        if solver == "kabsch":
-            scale = right["scale"].to_numpy(dtype=float)
-            far = float(np.max(np.maximum(scale, 1 / scale)))
-            out["max_scale"] = round(math.ceil(far ** (1 / MARGIN) / SCALE_STEP - 1e-9) * SCALE_STEP, 4)
+        beaten = sup[mine & wrong & (plausible | (solver != "kabsch"))]
+        top = float(beaten.max()) if len(beaten) else 1.0
+        out["min_support"][solver] = round((math.floor(top / SUPPORT_STEP + 1e-9) + 1) * SUPPORT_STEP, 4)
     return out
 
 
 def command_rule() -> dict:
-    """The thresholds the command uses (:mod:`freereg_lib.pipeline.register`), as :func:`fit_rule` gives them."""
-    from freereg_lib.pipeline import register as R
+    """The constants the command uses (:mod:`freereg_lib.pipeline.verdict`), as :func:`fit_rule` gives them."""
+    from freereg_lib.pipeline import verdict
 
-    return {"min_inliers": {s: R.MIN_INLIERS[s] for s in SOLVERS},
-            "min_ratio": {s: R.MIN_INLIER_RATIO[s] for s in SOLVERS}, "max_scale": R.MAX_SCALE}
+    return {"min_support": {s: verdict.MIN_SUPPORT[s] for s in SOLVERS}, "max_scale": verdict.MAX_SCALE}
 
 
 def verdicts(table, rule: dict | None = None) -> np.ndarray:
     """The command's verdict for each row of ``table``, computed by
-    :func:`freereg_lib.pipeline.register._verdict` itself with ``rule`` (a :func:`fit_rule`
-    result; default the command's thresholds)."""
+    :func:`freereg_lib.pipeline.verdict.decide` itself with ``rule`` (a :func:`fit_rule`
+    result; default the command's constants)."""
     from types import SimpleNamespace
 
-    from freereg_lib.pipeline import register as R
+    from freereg_lib.pipeline import verdict
 
-    rule = rule or command_rule()
+    rule, cfg = rule or command_rule(), _config()
     out = []
     for r in table.to_dict("records"):
         s = r["solver"]
         res = SimpleNamespace(success=bool(r["success"]), reason="", scale=float(r["scale"]),
                               n_inliers=int(r["n_inliers"]))
-        ok, _ = R._verdict(res, {"matches": int(r["n_matches"]), "note": ""}, s,
-                           rule["min_inliers"][s], rule["min_ratio"][s], rule["max_scale"])
+        ok, _ = verdict.decide(res, nulls_of(r["null_inliers"]), s, cfg, rule["min_support"][s], rule["max_scale"])
         out.append(ok)
     return np.asarray(out, dtype=bool)
 
@@ -172,8 +184,8 @@ def table_lines(table, rule: dict | None = None) -> list[str]:
 
 
 def describe(rule: dict) -> str:
-    """A rule as one line: per solver its inliers, ratio and (Kabsch) scale bound."""
-    return "; ".join(f"{s}: >= {rule['min_inliers'][s]} inliers, >= {rule['min_ratio'][s]:.1%} of the matches"
+    """A rule as one line: per solver its least support and (Kabsch) scale bound."""
+    return "; ".join(f"{s}: support >= {rule['min_support'][s]:g} x the shuffled matches' inliers"
                      + (f", scale within [{1 / rule['max_scale']:.2f}, {rule['max_scale']:g}]" if s == "kabsch" else "")
                      for s in SOLVERS)
 

@@ -19,23 +19,13 @@ Conventions (the README's "Your own data"):
 * The cloud is in metres. Kabsch-RANSAC estimates a similarity (monocular depth has a scale
   error); the pose written is its rigid part, the scale is reported.
 
-**The depth camera.** FreeReg compares the image with the cloud *rendered as a depth map* on a
-depth camera. A cloud that came from a depth sensor is rendered from that sensor (the paper's
-setting; the official demo's cloud is in its sensor's frame, so that camera is the identity).
-A cloud with no sensor (a map, a LiDAR scan, a reconstruction) gets **virtual** depth cameras
-(:func:`virtual_cameras`): the origin of the cloud's frame when the cloud lies in front of it,
-a rough pose of the image camera when one is given, and a ring of views around the cloud's
-vertical axis, from its centre and from behind it. Each candidate runs the whole chain and the
-one whose pose has the most RANSAC inliers (with a plausible scale) is kept: no ground truth is
-used. The kept pose is then *refined*: the cloud is rendered again from the estimated camera
-pose (the view that best resembles the image) and registered once more; the refined pose
-replaces the first when it has more inliers.
+**The depth camera.** The cloud is rendered as a depth map from its sensor when it has one,
+else from virtual cameras (:func:`virtual_cameras`); each candidate runs the whole chain, the pose
+with the most RANSAC inliers (a plausible scale) is kept, then refined from the estimated pose.
 
-**Registered or not.** Without ground truth nobody can say for sure; the verdict is a
-plausibility check: the solver found a pose, with at least ``min_inliers`` inliers making up
-at least ``min_inlier_ratio`` of the matches, and (Kabsch) a scale within
-``[1 / max_scale, max_scale]``. With a ground-truth pose the rotation / translation errors and
-the paper's (20 deg, 0.5 m) verdict are printed as well.
+**Registered or not** without ground truth: a plausibility check, :mod:`freereg_lib.pipeline.verdict`
+(the inliers against a per-run null of shuffled matches). With a ground-truth pose RE / TE and the
+paper's (20 deg, 0.5 m) verdict are printed as well.
 """
 from __future__ import annotations
 
@@ -53,7 +43,7 @@ from freereg_lib.features.baseline import METHOD as BASELINE
 from freereg_lib.features.matching import Matches
 from freereg_lib.geometry import cameras, metrics, pose
 from freereg_lib.models import get_backend
-from freereg_lib.pipeline import steps
+from freereg_lib.pipeline import steps, verdict
 
 class InputError(ValueError):
     """A user input that cannot be registered; its message is one line naming the input."""
@@ -63,28 +53,7 @@ def _one_line(exc: BaseException) -> str:
     return " ".join(str(exc).split())
 
 
-# Thresholds of the plausibility verdict (no ground truth; the module docstring), per solver:
-# freereg_lib.commands.verdict_measure.fit_rule of the rows of the ICL pairs within frames 0-100
-# (tests/fixtures/verdict_icl_fit_rows.csv), a fifth below the weakest pose within (5 deg, 0.1 m)
-# of the truth; their error rates are counted on frames 110-210 (docs/your_data.md). PnP-RANSAC's
-# inliers (10 px) are fewer than Kabsch's (0.2 m).
-MIN_INLIERS = {"kabsch": 48, "pnp": 16}
-MIN_INLIER_RATIO = {"kabsch": 0.24, "pnp": 0.075}
-MAX_SCALE = 1.25  # Kabsch's similarity: the scale within [1 / MAX_SCALE, MAX_SCALE]
-
-
-def verdict_thresholds(solver: str, min_inliers=None, min_ratio=None, max_scale=None) -> tuple[int, float, float]:
-    """``(min_inliers, min_inlier_ratio, max_scale)`` of the verdict for ``solver``: the values
-    given, else the module's, which are per solver (PnP's inliers are within 10 px, Kabsch's
-    within 0.2 m: their counts differ)."""
-    return (MIN_INLIERS[solver] if min_inliers is None else int(min_inliers),
-            MIN_INLIER_RATIO[solver] if min_ratio is None else float(min_ratio),
-            MAX_SCALE if max_scale is None else float(max_scale))
-
-
 VIRTUAL_MAX_WIDTH = 640  # virtual depth cameras render at most this wide (the image's intrinsics, scaled)
-
-
 
 
 # Clouds far from their frame's origin (UTM, a map) are solved re-centred, for float precision.
@@ -156,6 +125,7 @@ class Registration:
     pose: object = None
     errors: dict = field(default_factory=dict)  # RE, TE (and IR, IN with the image's true depth)
     seconds: float = 0.0
+    null_inliers: list = field(default_factory=list)  # the verdict's shuffles: the solver's inliers by chance
 
     @property
     def T_pc_cam(self) -> np.ndarray:
@@ -164,27 +134,6 @@ class Registration:
     @property
     def inlier_ratio(self) -> float:
         return self.n_inliers / self.n_matches if self.n_matches else 0.0
-
-
-# --------------------------------------------------------------------------------------
-# Reading the inputs.
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
 
 
 # --------------------------------------------------------------------------------------
@@ -220,17 +169,12 @@ def parse_up(up: str | None, points: np.ndarray) -> tuple[np.ndarray, str]:
 def virtual_cameras(points: np.ndarray, K_image: np.ndarray, image_size: tuple[int, int], cfg: FreeRegConfig,
                     rough_T_pc_cam: np.ndarray | None = None, up: str | None = None, n_yaw: int = 8,
                     max_width: int = VIRTUAL_MAX_WIDTH, with_origin: bool = True) -> list[DepthCamera]:
-    """Candidate depth cameras for a cloud with no sensor pose (module docstring).
-
-    All use the image's intrinsics (scaled to at most ``max_width`` pixels wide). Candidates:
-    ``origin`` (the cloud frame's origin, looking along +z, as the official demo's identity
-    extrinsic) when at least 5 % of the points lie in its view; ``rough`` (the given rough
-    pose of the image camera, ``T_pc_cam``); ``centre/yaw<deg>``: at the cloud's centroid
-    looking horizontally (perpendicular to ``up``) every ``360 / n_yaw`` degrees; and
-    ``behind/yaw<deg>``: the same directions from a point pulled back from the centroid by the
-    cloud's horizontal radius of gyration, so that more of the cloud is in view.
-    ``with_origin=False`` leaves ``origin`` out (a re-centred cloud's origin is no sensor's).
-    """
+    """Candidate depth cameras for a cloud with no sensor pose, with the image's intrinsics (at
+    most ``max_width`` px wide): ``origin`` (the cloud frame's origin looking along +z, as the
+    demo's identity extrinsic; when 5 % of the points are in view and ``with_origin``), ``rough``
+    (the given ``T_pc_cam``), ``centre/yaw<deg>`` (at the centroid, looking horizontally every
+    ``360 / n_yaw`` degrees) and ``behind/yaw<deg>`` (the same, pulled back by the cloud's
+    horizontal radius of gyration)."""
     H, W = image_size
     s = min(1.0, max_width / W)
     K = cameras.scale_intrinsics(K_image, s, s) if s < 1 else np.asarray(K_image, dtype=np.float64).copy()
@@ -302,8 +246,7 @@ def register(
     rough_T_pc_cam: np.ndarray | None = None,
     up: str | None = None,
     n_yaw: int = 8,
-    min_inliers: int | None = None,
-    min_inlier_ratio: float | None = None,
+    min_support: float | None = None,
     max_scale: float | None = None,
     log: Callable[[str], None] | None = print,
 ) -> Registration:
@@ -335,7 +278,8 @@ def register(
     method, why_method = choose_method(backend, pair, method)
     if solver not in ("kabsch", "pnp"):
         raise InputError(f"unknown solver {solver!r}; expected kabsch or pnp")
-    thresholds = verdict_thresholds(solver, min_inliers, min_inlier_ratio, max_scale)
+    thresholds = (verdict.MIN_SUPPORT[solver] if min_support is None else float(min_support),
+                  verdict.MAX_SCALE if max_scale is None else float(max_scale))
     if getattr(backend, "name", "") == "stub" and pair.depth_gt is None:
         raise InputError("the stub backend makes its stand-in monocular depth from the image's true depth: give "
                          "--image-depth FILE, or use --backend tiny / real (ZoeDepth)")
@@ -343,7 +287,7 @@ def register(
     say(f"method: {why_method}; solver: {solver} (RANSAC iterations {cfg.ransac_iters}"
         + (f", Kabsch scoring {cfg.kabsch_scoring!r}" if solver == "kabsch" else "") + ")")
     cands = _candidates(pair, cfg, depth_cameras, rough_T_pc_cam, up, n_yaw, offset, say)
-    attempt = _Attempt(pair, backend, cfg, method, solver, thresholds[2])
+    attempt = _Attempt(pair, backend, cfg, method, solver, thresholds[1])
     runs = [attempt(cam) for cam in cands]
     best = _best(runs)
     if refine and len(cands) > 1 and best is not None and best.get("_res") is not None and best["_res"].success:
@@ -464,13 +408,15 @@ def _say_candidates(runs: list[dict], best: dict, say) -> None:
 
 
 def _registration(best: dict, runs: list[dict], original: Pair, offset, cfg: FreeRegConfig, method: str,
-                  solver: str, thresholds: tuple[int, float, float], backend, seconds: float) -> Registration:
+                  solver: str, thresholds: tuple[float, float], backend, seconds: float) -> Registration:
     """The chosen candidate as a :class:`Registration`: the verdict, the pose back in the cloud's
     own coordinates, and the errors against the ground truth when the pair has one."""
     cam, res = best["_cam"], best.get("_res")
     n_m, n_in = best["matches"], best["inliers"]
     scale = float(res.scale) if res is not None else math.nan
-    ok, why = _verdict(res, best, solver, *thresholds)
+    nulls = (verdict.null_inliers(best["_q"], best["_feats"], best["_m"], cfg, solver)
+             if res is not None and res.success else [])
+    ok, why = verdict.decide(res, nulls, solver, cfg, *thresholds, note=best["note"])
     T = res.T_cam_pc if res is not None and res.success else np.full((4, 4), np.nan)
     q_out = best.get("_q", original)
     if offset is not None:  # back to the cloud's own coordinates
@@ -489,14 +435,12 @@ def _registration(best: dict, runs: list[dict], original: Pair, offset, cfg: Fre
                                                       and res.success else ""))
     return Registration(T, ok, result, method, solver, getattr(backend, "label", str(backend)), n_m, n_in, scale, cam,
                         [{k: v for k, v in r.items() if not k.startswith("_")} | {"chosen": r is best} for r in runs],
-                        q_out, best.get("_feats"), best.get("_m"), res, errors, seconds)
+                        q_out, best.get("_feats"), best.get("_m"), res, errors, seconds, nulls)
 
 
 def _inliers_gt(q: Pair, feats, m, cfg: FreeRegConfig, virtual: bool) -> dict:
-    """IR / IN with the image's true depth. A sensor's depth camera: the official evaluation
-    (:func:`steps.evaluate`). A virtual camera's raw view is the cloud's sparse projection,
-    on which most keypoints have no depth, so the depth side is lifted from the densified view
-    instead (the points the solver used): an approximation of the official rule."""
+    """IR / IN with the image's true depth: :func:`steps.evaluate` on a sensor's camera; on a virtual
+    one (a sparse raw view) the depth side lifted from the densified view, an approximation."""
     if not virtual:
         sc = steps.evaluate(q, feats, m, pose.PoseResult(np.eye(4), False, "none"), cfg)
         return {"IR": sc["IR"], "IN": sc["IN"]}
@@ -507,36 +451,5 @@ def _inliers_gt(q: Pair, feats, m, cfg: FreeRegConfig, virtual: bool) -> dict:
     return {"IR": ir, "IN": inn}
 
 
-def _verdict(res, row, solver, min_inliers, min_ratio, max_scale) -> tuple[bool, str]:
-    if res is None:
-        return False, f"no pose ({row['note']})"
-    if not res.success:
-        return False, f"the solver found no pose ({res.reason})"
-    if solver == "kabsch" and not 1 / max_scale <= res.scale <= max_scale:
-        return False, (f"the similarity's scale {res.scale:.2f} is outside [{1 / max_scale:.2g}, {max_scale:g}] "
-                       "(it shrank or blew up the image side onto wrong matches)")
-    ratio = res.n_inliers / row["matches"] if row["matches"] else 0.0
-    if res.n_inliers < min_inliers:
-        return False, f"too few inliers ({res.n_inliers} < {min_inliers})"
-    if ratio < min_ratio:
-        return False, f"inlier ratio {_share(res.n_inliers, row['matches'], min_ratio)} below {min_ratio:.1%}"
-    return True, "a pose with enough inliers (a plausibility check, not a proof without ground truth)"
-
-
-def _share(n: int, of: int, cut: float) -> str:
-    """``n / of`` as a percentage with the digits that show it is on its side of ``cut``
-    (25 / 172 = 14.5 % below 15.0 %, not "15% below 15%")."""
-    ratio = n / of if of else 0.0
-    for digits in (1, 2, 3):
-        text = f"{ratio:.{digits}%}"
-        if (float(text[:-1]) / 100 < cut) == (ratio < cut) and text != f"{cut:.{digits}%}":
-            break
-    return f"{text} ({n} / {of})"
-
-
 def _fmt(v, spec: str) -> str:
     return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, spec)
-
-
-# --------------------------------------------------------------------------------------
-# Outputs.
