@@ -162,7 +162,7 @@ BACKEND_NOTES = {
 EXTRA_PAGES = ("benchmarks/README.md", "assignments/README.md", "freereg_lib/models/micro/weights/MODEL_CARD.md",
                "freereg_lib/models/micro/weights/depth/MODEL_CARD.md")
 # The reading order of docs/; a page not named here follows, by name.
-DOC_ORDER = ("backends", "micro_models", "real_data", "your_data", "real_frames", "fidelity", "performance",
+DOC_ORDER = ("backends", "micro_models", "reproducibility", "real_data", "your_data", "real_frames", "fidelity", "performance",
              "troubleshooting", "teaching", "contributing", "changelog")
 
 # The API reference: the method layers by topic (tools beside the method are not in it).
@@ -194,7 +194,8 @@ API_TOPICS: tuple[tuple[str, str, str, tuple[str, ...]], ...] = (
      ("freereg_lib.features", "freereg_lib.features.descriptors", "freereg_lib.features.geometric",
       "freereg_lib.features.matching", "freereg_lib.features.baseline")),
     ("pipeline", "The pipeline", "FreeReg on one pair and on many; a cloud without its sensor pose registered.",
-     ("freereg_lib.pipeline", "freereg_lib.pipeline.steps", "freereg_lib.pipeline.register")),
+     ("freereg_lib.pipeline", "freereg_lib.pipeline.steps", "freereg_lib.pipeline.register",
+      "freereg_lib.pipeline.verdict")),
 )
 
 

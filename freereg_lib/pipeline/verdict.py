@@ -1,10 +1,10 @@
 """``freereg register``'s REGISTERED / FAILED without ground truth: the pose's support against a per-run null.
 
 The chosen pose's RANSAC inliers are compared with what the same solver reaches on the same matches
-with their depth side shuffled (:data:`NULL_SHUFFLES` runs of at most :data:`NULL_MAX_ITERS`
+with their depth side shuffled (``NULL_SHUFFLES`` runs of at most ``NULL_MAX_ITERS``
 iterations; the null is their most inliers, at least the solver's minimum of matches). REGISTERED:
 a pose, (Kabsch) a scale within ``[1 / MAX_SCALE, MAX_SCALE]`` (a sanity bound) and inliers / null
-at least :data:`MIN_SUPPORT` (fitted by :func:`freereg_lib.commands.verdict_measure.fit_rule`;
+at least ``MIN_SUPPORT`` (fitted by ``freereg_lib.commands.verdict_measure.fit_rule``;
 docs/your_data.md has its rates).
 """
 from __future__ import annotations
