@@ -292,7 +292,9 @@ def test_a_failed_registration_names_the_intrinsics_and_what_its_scale_says(tmp_
     assert rc == 0 and "result: FAILED" in out, out[-600:]
     check = next(line for line in out.splitlines() if line.startswith("check: "))
     assert "the intrinsics --K (fx 262.5" in check and "--depth-scale 1000" in check, check
-    assert re.search(r"the scale 0\.[45]\d makes the image side (1\.[89]|2\.[0-4])x smaller", check), check  # ~1/2
+    # A focal length doubled shrinks the image side: the scale is below 1 (0.5 for an exact pose; 200
+    # RANSAC iterations on a wrong K give 0.5-0.7 depending on the candidate camera chosen).
+    assert re.search(r"the scale 0\.[4-7]\d makes the image side (1\.[3-9]|2\.[0-4])x smaller", check), check
 
 
 def test_depth_in_other_units_without_ground_truth_names_the_units(tmp_path, capsys):
