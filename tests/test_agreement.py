@@ -99,3 +99,34 @@ def test_the_check_fails_when_a_committed_row_is_altered(three_pairs, tmp_path):
     assert again[33]["fields"]["FreeReg kabsch"]["status"] == "flipped"
     assert again[66]["fields"]["FreeReg-D pnp"]["status"] in ("differs", "flipped")
     assert again[0]["status"] == next(p for p in result["pairs"] if p["k"] == 0)["status"]  # pair 0 untouched
+
+
+def test_fresh_recomputes_only_the_pairs_it_checks(tmp_path, monkeypatch):
+    written = []
+    monkeypatch.setattr(agreement, "_one_pair", lambda k, folder: (written.append(k), (folder / f"{k}.jsonl").write_text(
+        json.dumps({"k": k, "rows": []}) + "\n")))
+
+    class Serial:  # the pool's work in this process, so the stand-in above is what runs
+        def __init__(self, **_):
+            pass
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def submit(self, fn, *args):
+            from concurrent.futures import Future
+
+            fut = Future()
+            fut.set_result(fn(*args))
+            return fut
+
+    monkeypatch.setattr("concurrent.futures.ProcessPoolExecutor", Serial)
+    other = tmp_path / "7.jsonl"
+    agreement.recompute([0, 10], tmp_path, progress=False)
+    other.write_text("a user's file\n")
+    agreement.recompute([0, 10], tmp_path, progress=False)  # kept: nothing recomputed
+    agreement.recompute([0, 10], tmp_path, progress=False, fresh=True)
+    assert written == [0, 10, 0, 10] and other.read_text() == "a user's file\n"

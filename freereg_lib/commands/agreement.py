@@ -19,7 +19,8 @@ committed models and config, and compares
 
 It prints one line ("this machine reproduces the committed results: ...") and writes
 ``agreement.json`` and ``agreement.md`` (per pair and field, per verdict) with the recomputed rows
-(``rows/<k>.jsonl``, kept: a pair already there is not recomputed when the command runs again) in ``--out``. ``make reproduce`` runs it on
+(``rows/<k>.jsonl``, kept: a pair already there is not recomputed when the command runs again,
+unless ``--fresh``) in ``--out``. ``make reproduce`` runs it on
 10 pairs. Exit status: 0 when every verdict is unchanged, 1 when one changed, 2 on bad arguments.
 """
 from __future__ import annotations
@@ -91,15 +92,18 @@ def _one_pair(k: int, folder: Path) -> None:
     evaluate_split.run("test", k + 1, folder / f"{k}.jsonl", ks=[k], progress=False)
 
 
-def recompute(ks: list[int], folder: Path, jobs: int = 1, progress: bool = True) -> list[dict]:
+def recompute(ks: list[int], folder: Path, jobs: int = 1, progress: bool = True, fresh: bool = False) -> list[dict]:
     """The rows of the test split's pairs ``ks`` (:func:`~freereg_lib.training.evaluate_split.run`),
     ``jobs`` processes side by side, one file a pair in ``folder`` (``<k>.jsonl``; a pair already
-    there is not recomputed)."""
+    there is not recomputed unless ``fresh``, which replaces the files of ``ks``)."""
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
     from tqdm.auto import tqdm
 
     folder.mkdir(parents=True, exist_ok=True)
+    if fresh:  # only the files this function writes
+        for k in ks:
+            (folder / f"{k}.jsonl").unlink(missing_ok=True)
 
     def done(k: int) -> bool:
         path = folder / f"{k}.jsonl"
@@ -224,13 +228,16 @@ def report_md(pairs: list[dict], verdicts: dict, committed_path: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
-def check(n_pairs: int, out: Path, committed_path: Path, jobs: int = 1, progress: bool = True) -> tuple[str, dict]:
-    """Recompute ``n_pairs`` committed pairs into ``out`` and compare; ``(summary line, result)``."""
+def check(n_pairs: int, out: Path, committed_path: Path, jobs: int = 1, progress: bool = True,
+          fresh: bool = False) -> tuple[str, dict]:
+    """Recompute ``n_pairs`` committed pairs into ``out`` and compare; ``(summary line, result)``.
+    ``fresh`` recomputes pairs whose rows ``out`` already holds (``make reproduce`` checks the code
+    as it is now, not an earlier run's rows)."""
     committed = load_committed(committed_path)
     ks = sample_pairs(committed["n_pairs"], n_pairs)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    recs = recompute(ks, out / "rows", jobs, progress)
+    recs = recompute(ks, out / "rows", jobs, progress, fresh)
     pairs = [compare_pair(committed, rec) for rec in recs]
     verdicts = compare_verdicts(committed, recs)
     line = summary_line(pairs, verdicts)
@@ -251,11 +258,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default="runs/agreement", help="folder for the recomputed rows and the report")
     ap.add_argument("--committed", default=str(Path(WEIGHTS_DIR) / "test_split.json"), help="the committed split JSON")
     ap.add_argument("--jobs", type=int, default=1, help="processes side by side (one thread each)")
+    ap.add_argument("--fresh", action="store_true", help="recompute pairs whose rows --out already holds")
     args = ap.parse_args(argv)
     if args.jobs < 1:
         ap.error(f"--jobs must be at least 1, got {args.jobs}")
     try:
-        line, result = check(args.pairs, Path(args.out), Path(args.committed), args.jobs)
+        line, result = check(args.pairs, Path(args.out), Path(args.committed), args.jobs, fresh=args.fresh)
     except AgreementError as exc:
         ap.error(str(exc))
     print(line)

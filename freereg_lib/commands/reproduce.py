@@ -125,7 +125,7 @@ def agreement(out: Path, n_pairs: int, jobs: int | None) -> bool:
     jobs = max(1, min(jobs or os.cpu_count() or 1, n_pairs))
     print(f"\nChecking this machine against the committed test split: {n_pairs} of its pairs recomputed "
           f"({jobs} at a time)")
-    line, result = check.check(n_pairs, out / "agreement", Path(WEIGHTS_DIR) / "test_split.json", jobs)
+    line, result = check.check(n_pairs, out / "agreement", Path(WEIGHTS_DIR) / "test_split.json", jobs, fresh=True)
     print(f"{line}\n(details: {out / 'agreement' / 'agreement.md'}; all 100 pairs: "
           f"python -m freereg_lib.commands.agreement --pairs 100)")
     return all(v["unchanged"] for v in result["verdicts"].values())
