@@ -126,7 +126,9 @@ class Pair:
         checked(cameras.check_intrinsics, self.K_image, (H, W), "K_image")
         try:
             size = tuple(int(v) for v in self.depth_size)
-            ok = len(size) == 2 and size == tuple(self.depth_size) and min(size) > 0
+            # Integers by type: (480.0, 640.0) equals (480, 640) but numpy refuses it as an image shape.
+            ok = (len(size) == 2 and min(size) > 0
+                  and all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in self.depth_size))
         except (TypeError, ValueError):
             ok = False
         if not ok:
