@@ -126,9 +126,8 @@ class Pair:
         checked(cameras.check_intrinsics, self.K_image, (H, W), "K_image")
         try:
             size = tuple(int(v) for v in self.depth_size)
-            # Integers by type: (480.0, 640.0) equals (480, 640) but numpy refuses it as an image shape.
-            ok = (len(size) == 2 and min(size) > 0
-                  and all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in self.depth_size))
+            ok = len(size) == 2 and min(size) > 0 and all(  # integers by type: numpy refuses (480.0, 640.0)
+                isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in self.depth_size)
         except (TypeError, ValueError):
             ok = False
         if not ok:
@@ -222,8 +221,7 @@ def _units_hint(name: str, ratio: float) -> str:
 # within ON_CLOUD spacings, a cause is a fault when it lands at least ALT_ON and clearly more
 # (ALT_GAIN x, or twice and 25 points more); with none, when the cloud seen with T_cam_pc covers
 # COVER_ON of the pixels and agrees with depth_gt at under AGREE_MIN (another view's pose or depth:
-# 26-52 % on ICL, good pairs 90-98 %, landing 50-95 %; the synthetic test pair k = 60, a good one,
-# 57 %, which a threshold of 70 % refused).
+# 26-52 % on ICL, good pairs 90-98 %, landing 50-95 %; the good synthetic test pair k = 60: 57 %).
 ON_CLOUD, FEW_ON, ALT_ON, ALT_GAIN = 3.0, 0.1, 0.2, 3.0
 SUSPECT_ON, COVER_ON, AGREE_MIN, SEEN_BLOCK = 0.5, 0.5, 0.55, 4
 DEPTH_FAULTS = ((2.0, "depth_gt is half the truth: 2 mm PNG units read as millimetres? (doubled, it lands)"),
@@ -259,8 +257,7 @@ def geometry_fault(pair: "Pair", max_points: int = 50_000, max_pixels: int = 300
     uv, z = np.stack([u[pick], v[pick]], axis=1).astype(np.float64), D[v[pick], u[pick]]
     cloud = pts[:: max(1, len(pts) // max_points)]
     tree = cKDTree(cloud)
-    spacing = float(np.median(tree.query(cloud[:: max(1, len(cloud) // 2000)], k=2)[0][:, 1]))
-    spacing = max(spacing, 1e-9)
+    spacing = max(float(np.median(tree.query(cloud[:: max(1, len(cloud) // 2000)], k=2)[0][:, 1])), 1e-9)
 
     def landing(T_cam_pc, factor=1.0):
         d = tree.query(cameras.transform(cameras.invert(T_cam_pc), cameras.lift(uv, z * factor, pair.K_image)))[0]
