@@ -259,9 +259,9 @@ def geometry_fault(pair: "Pair", max_points: int = 50_000, max_pixels: int = 300
     tree = cKDTree(cloud)
     spacing = max(float(np.median(tree.query(cloud[:: max(1, len(cloud) // 2000)], k=2)[0][:, 1])), 1e-9)
 
-    def landing(T_cam_pc, factor=1.0):
-        d = tree.query(cameras.transform(cameras.invert(T_cam_pc), cameras.lift(uv, z * factor, pair.K_image)))[0]
-        return float(np.mean(d <= ON_CLOUD * spacing)), float(np.median(d))
+    def landing(T_cam_pc, factor=1.0):  # a bounded search: far pixels cost most, and only the share is needed
+        p = cameras.transform(cameras.invert(T_cam_pc), cameras.lift(uv, z * factor, pair.K_image))
+        return float(np.mean(tree.query(p, distance_upper_bound=1.01 * ON_CLOUD * spacing)[0] <= ON_CLOUD * spacing)), p
 
     def consistent() -> str:
         if len(_CONSISTENT) > 256:
@@ -269,11 +269,10 @@ def geometry_fault(pair: "Pair", max_points: int = 50_000, max_pixels: int = 300
         _CONSISTENT[key] = True
         return ""
 
-    on, med = landing(T)
+    on, p0 = landing(T)
     if on >= SUSPECT_ON:
         return consistent()
-    transposed = T.copy()
-    transposed[:3, :3] = T[:3, :3].T
+    transposed = np.block([[T[:3, :3].T, T[:3, 3:]], [T[3:, :3], T[3:, 3:]]])
     alts = [("T_cam_pc looks inverted (its inverse lands it: T_pc_cam given for T_cam_pc?)", landing(cameras.invert(T))),
             ("T_cam_pc's rotation looks transposed (R.T with the same translation lands it)", landing(transposed))]
     alts += [(why, landing(T, f)) for f, why in DEPTH_FAULTS]
@@ -293,11 +292,11 @@ def geometry_fault(pair: "Pair", max_points: int = 50_000, max_pixels: int = 300
         if abs(np.log(ratio)) > 0.05 and not standard and np.isfinite(ratio):
             alts.append((f"depth_gt is {1 / ratio:.2g} x the truth (x{ratio:.3g}, the median ratio of the cloud's "
                          f"depth seen with T_cam_pc to it, it lands)", landing(T, ratio)))
-    why, (alt_on, alt_med) = max(alts, key=lambda a: a[1][0])
+    why, (alt_on, alt_p) = max(alts, key=lambda a: a[1][0])
     head = (f"depth_gt lifted with T_cam_pc does not land on the point cloud: {on:.1%} of its pixels within "
-            f"{ON_CLOUD:g} x the cloud's spacing {spacing:.3g} m of a point (median distance {med:.3g} m)")
+            f"{ON_CLOUD:g} x the cloud's spacing {spacing:.3g} m of a point (median distance {np.median(tree.query(p0)[0]):.3g} m)")
     if alt_on >= max(ALT_ON, min(ALT_GAIN * on, on + max(0.25, on))):
-        return f"{head}; {why}: then {alt_on:.1%} (median {alt_med:.3g} m)"
+        return f"{head}; {why}: then {alt_on:.1%} (median {np.median(tree.query(alt_p)[0]):.3g} m)"
     agree = float(np.mean(np.abs(seen[both] / z[both] - 1) < 0.1)) if both.any() else 1.0
     if cover >= COVER_ON and agree < AGREE_MIN:
         return (f"{head}; T_cam_pc puts the cloud in front of {cover:.0%} of them and its depth agrees with "
