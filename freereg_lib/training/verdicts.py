@@ -9,11 +9,10 @@ micro models is read here from the committed JSON of the test split (:mod:`.eval
 """
 from __future__ import annotations
 
-import json
-from pathlib import Path
 
 import numpy as np
 
+from freereg_lib.report.committed_charts import committed as load  # a committed JSON by name, None when absent
 from freereg_lib.report.committed_charts import wilson_interval
 from freereg_lib.report.vocabulary import Value, verdict, verdict_line
 
@@ -23,15 +22,6 @@ TUNED_JSON = "fusion/test_split_fpfh0.15_w0.5.json"
 DDIM_JSON = "ddim_iterations_test.json"
 COMBINATIONS_JSON = "dev_layer_combinations.json"
 MONO_JSON = "mono_modality_test.json"
-
-
-def load(name: str) -> dict | None:
-    """A committed result JSON of the micro models (``freereg_lib/models/micro/weights/<name>``); None
-    when it is absent."""
-    from freereg_lib.models.micro.diffusion import WEIGHTS_DIR
-
-    path = Path(WEIGHTS_DIR) / name
-    return json.loads(path.read_text()) if path.exists() else None
 
 
 def _ci(s: dict) -> str:

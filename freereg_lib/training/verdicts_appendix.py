@@ -22,24 +22,16 @@ CLIP, on the synthetic test split) beside the paper's rows:
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from freereg_lib.data import paper
+from freereg_lib.report.committed_charts import committed as load  # a committed JSON by name, None when absent
 from freereg_lib.report.vocabulary import Value, verdict, verdict_line
 from freereg_lib.training.verdicts import _ci, _points, _sig
 
 RGBD_V2_JSON = "rgbd_scenes_v2_test.json"  # under the micro weights' folder (an absolute path is kept)
 FINETUNE_JSON = "finetune_test.json"
 OTHER_BACKBONES_JSON = "other_backbones_test.json"
-
-
-def load(name) -> dict | None:
-    """A committed result JSON of the micro models; None when it is absent."""
-    from freereg_lib.models.micro.diffusion import WEIGHTS_DIR
-
-    path = Path(WEIGHTS_DIR) / name
-    return json.loads(path.read_text()) if path.exists() else None
 
 
 def _v(name: str, stat: dict) -> Value:
