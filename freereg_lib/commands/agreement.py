@@ -31,10 +31,8 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
-from freereg_lib.training.evaluate import paired_permutation_p
-from freereg_lib.training.evaluate_split import METHODS, SOLVERS, VARIANTS, load_rows
+from freereg_lib.commands.process_io import redirect_stderr
+from freereg_lib.training.evaluate_split import VARIANTS, paired_tests
 from freereg_lib.training.provenance import machine_record
 
 IR_TOLERANCE = 0.02  # one match more or fewer among about 50 moves a pair's IR by 0.02
@@ -74,11 +72,7 @@ def load_committed(path: Path) -> dict:
 
 def _quiet_worker(log: Path) -> None:
     """A recomputing process: no model-loading progress bars, its standard error to ``log``."""
-    import os
-
-    fd = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
-    os.dup2(fd, 2)
-    os.close(fd)
+    redirect_stderr(log)
     from diffusers.utils import logging as diffusers_logging
     from transformers.utils import logging as transformers_logging
 
@@ -151,21 +145,6 @@ def compare_pair(committed: dict, rec: dict, tol: float = IR_TOLERANCE) -> dict:
     return {"k": rec["k"], "pair": rec.get("pair"), "status": worst, "fields": fields}
 
 
-def _tests(per: dict) -> dict:
-    """The split's headline paired tests (as :func:`~freereg_lib.training.evaluate_split.summarize`
-    names them) from per-variant per-pair lists: ``{name: (difference in points, p)}``."""
-    out = {}
-    pairs = [(f"IR: FreeReg - {o}", "FreeReg kabsch", f"{o} kabsch", "IR") for o in ("FreeReg-D", "FreeReg-G")]
-    pairs += [(f"RR {s}: FreeReg - {o}", f"FreeReg {s}", f"{o} {s}", "reg") for o in ("FreeReg-D", "FreeReg-G")
-              for s in SOLVERS]
-    pairs += [(f"RR {m}: kabsch - pnp", f"{m} kabsch", f"{m} pnp", "reg") for m in METHODS]
-    for name, a, b, what in pairs:
-        x = np.asarray(per[a][what], dtype=np.float64)
-        y = np.asarray(per[b][what], dtype=np.float64)
-        out[name] = (100 * float(np.nanmean(x - y)), paired_permutation_p(np.nan_to_num(x), np.nan_to_num(y)))
-    return out
-
-
 def verdict_class(diff: float, p: float) -> str:
     """A paired difference's direction and significance, the unit in which two machines must agree."""
     if diff == 0:
@@ -180,21 +159,20 @@ def compare_verdicts(committed: dict, recs: list[dict]) -> dict:
         per = {}
         for m, s in VARIANTS:
             key = f"{m} {s}"
-            ir = [None if v is None else float(v) for v in committed["results"][key]["IR_per_pair"]]
-            reg = [float(v) for v in committed["results"][key]["registered_per_pair"]]
+            ir = list(committed["results"][key]["IR_per_pair"])
+            reg = [int(v) for v in committed["results"][key]["registered_per_pair"]]
             for k, rows in replace.items():
-                row = rows[key]
-                ir[k], reg[k] = row["IR"], float(bool(row["registered"]))
-            per[key] = {"IR": [np.nan if v is None else v for v in ir], "reg": reg}
+                ir[k], reg[k] = rows[key]["IR"], int(bool(rows[key]["registered"]))
+            per[key] = {"IR_per_pair": ir, "registered_per_pair": reg}
         return per
 
     here_rows = {rec["k"]: {f"{r['method']} {r['solver']}": r for r in rec["rows"]} for rec in recs}
-    before, after = _tests(per_variant({})), _tests(per_variant(here_rows))
+    before, after = paired_tests(per_variant({})), paired_tests(per_variant(here_rows))
     out = {}
     for name in before:
         a, b = before[name], after[name]
-        ca, cb = verdict_class(*a), verdict_class(*b)
-        out[name] = {"committed": [a[0], a[1], ca], "here": [b[0], b[1], cb], "unchanged": ca == cb}
+        ca, cb = verdict_class(a["diff"], a["p"]), verdict_class(b["diff"], b["p"])
+        out[name] = {"committed": [a["diff"], a["p"], ca], "here": [b["diff"], b["p"], cb], "unchanged": ca == cb}
     return out
 
 

@@ -211,18 +211,7 @@ def summarize(recs: list[dict], split_name: str) -> dict:
                            "ladder": ladder, "ladder_per_pair": ladder_per_pair,
                            "errors": sum(1 for r in rows if r["error"]),
                            "IR_per_pair": ir, "registered_per_pair": [int(x) for x in reg]}
-    tests = {}
-    for other in ("FreeReg-D", "FreeReg-G"):
-        a, b = per["FreeReg kabsch"]["IR_per_pair"], per[f"{other} kabsch"]["IR_per_pair"]
-        tests[f"IR: FreeReg - {other}"] = {"diff": 100 * float(np.mean(a) - np.mean(b)),
-                                           "p": paired_permutation_p(a, b)}
-        for s in SOLVERS:
-            a, b = per[f"FreeReg {s}"]["registered_per_pair"], per[f"{other} {s}"]["registered_per_pair"]
-            tests[f"RR {s}: FreeReg - {other}"] = {"diff": 100 * float(np.mean(a) - np.mean(b)),
-                                                  "p": paired_permutation_p(a, b)}
-    for m in METHODS:
-        a, b = per[f"{m} kabsch"]["registered_per_pair"], per[f"{m} pnp"]["registered_per_pair"]
-        tests[f"RR {m}: kabsch - pnp"] = {"diff": 100 * float(np.mean(a) - np.mean(b)), "p": paired_permutation_p(a, b)}
+    tests = paired_tests(per)
     return {
         "split": split.name, "dataset_seed": split.seed, "noise_seed": split.noise_seed,
         "pair_seeds": f"{split.seed} * 1_000_003 + k for k in 0..{len(recs) - 1}",
@@ -236,6 +225,25 @@ def summarize(recs: list[dict], split_name: str) -> dict:
         "note": "IR per method is the same for both solvers (one set of matches per method); "
                 "p: two-sided paired sign-flip permutation test over pairs; intervals: 95 % percentile bootstrap.",
     }
+
+
+def paired_tests(per: dict) -> dict:
+    """The split's headline paired tests from each variant's ``IR_per_pair`` and ``registered_per_pair``
+    (``per["<method> <solver>"]``): fused FreeReg against each half (IR with Kabsch's matches; RR with
+    each solver) and Kabsch against PnP per method, each ``{"diff": points, "p": paired permutation p}``."""
+    tests = {}
+    for other in ("FreeReg-D", "FreeReg-G"):
+        a, b = per["FreeReg kabsch"]["IR_per_pair"], per[f"{other} kabsch"]["IR_per_pair"]
+        tests[f"IR: FreeReg - {other}"] = {"diff": 100 * float(np.mean(a) - np.mean(b)),
+                                           "p": paired_permutation_p(a, b)}
+        for s in SOLVERS:
+            a, b = per[f"FreeReg {s}"]["registered_per_pair"], per[f"{other} {s}"]["registered_per_pair"]
+            tests[f"RR {s}: FreeReg - {other}"] = {"diff": 100 * float(np.mean(a) - np.mean(b)),
+                                                  "p": paired_permutation_p(a, b)}
+    for m in METHODS:
+        a, b = per[f"{m} kabsch"]["registered_per_pair"], per[f"{m} pnp"]["registered_per_pair"]
+        tests[f"RR {m}: kabsch - pnp"] = {"diff": 100 * float(np.mean(a) - np.mean(b)), "p": paired_permutation_p(a, b)}
+    return tests
 
 
 def report(res: dict) -> str:
