@@ -17,6 +17,7 @@ import pytest
 
 from freereg_lib.commands import book as B
 from freereg_lib.commands import book_inputs as BI
+from freereg_lib.commands import process_io as PIO
 
 ROOT = Path(__file__).resolve().parents[1]
 GOOD = ROOT / "notebooks" / "03_fusion.ipynb"
@@ -70,14 +71,14 @@ def test_out_under_proc_is_one_line(run, capsys, monkeypatch):
 
 
 def test_a_read_only_run_folder_is_one_line_before_staging(run, capsys, monkeypatch):
-    real = BI._probe_write
+    real = PIO.probe_write
 
     def probe(folder):  # as root, chmod does not stop writes: a read-only mount's error, simulated
         if Path(folder).resolve() == run.resolve():
             raise OSError(errno.EROFS, "Read-only file system")
         real(folder)
 
-    monkeypatch.setattr(BI, "_probe_write", probe)
+    monkeypatch.setattr(PIO, "probe_write", probe)
     err = _refused([str(run), "--out", str(run.parent / "site")], capsys, monkeypatch)
     assert f"{run}: cannot write in the run folder (Read-only file system)" in err
 
@@ -152,7 +153,7 @@ def test_rows_in_a_read_only_folder_is_one_line_before_any_pair(tmp_path, capsys
     def read_only(folder):  # as root, chmod does not stop writes: a read-only mount's error, simulated
         raise OSError(errno.EROFS, "Read-only file system")
 
-    monkeypatch.setattr(CI, "_probe_write", read_only)
+    monkeypatch.setattr(PIO, "probe_write", read_only)
     err = _exit_2(module.main, ["--rows", str(tmp_path / "r.jsonl"), "--pairs", "1"], capsys, monkeypatch, module)
     assert f"cannot write in {tmp_path} (Read-only file system)" in err
 
@@ -223,7 +224,7 @@ def test_register_out_in_a_read_only_folder_stops_before_registering(tmp_path, c
     def read_only(folder):  # as root, chmod does not stop writes: a read-only mount's error, simulated
         raise OSError(errno.EROFS, "Read-only file system")
 
-    monkeypatch.setattr(UI, "_probe_write", read_only, raising=False)  # (none before the check existed)
+    monkeypatch.setattr(PIO, "probe_write", read_only)
     monkeypatch.setattr(cli, "write_outputs", lambda *a, **k: pytest.fail("registered, then failed to write"))
     out = tmp_path / "ro" / "result"
     rc = cli.main(["register", str(paths["image"]), str(paths["cloud"]), "--K", *K, "--image-depth", str(paths["image_depth"]),

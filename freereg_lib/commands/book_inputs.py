@@ -11,12 +11,13 @@ book writes: its site folder, the run folder it stages in, and the figures its i
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import sys
-import tempfile
 from collections.abc import Iterable
 from pathlib import Path
+
+from freereg_lib.commands import process_io
+from freereg_lib.commands.process_io import write_fault
 
 NOTEBOOK_GLOB = "[0-9][0-9]_*.ipynb"  # the run's executed notebooks, as book.stage_notebooks reads them
 CELL_TYPES = ("markdown", "code", "raw")
@@ -125,26 +126,10 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 CHOOSE = "choose a new or empty folder, e.g. <run>/site (the default)"
 
 
-def _probe_write(folder: Path) -> None:
-    """Create and remove a file in ``folder``: an OSError says the book could not write there (a read-only
-    mount, a full disk, ``/proc``; ``os.access`` cannot tell, as root it says yes)."""
-    fd, name = tempfile.mkstemp(prefix=".freereg-probe-", dir=folder)
-    os.close(fd)
-    os.unlink(name)
-
-
 def _writable_fault(folder: Path, what: str) -> str:
     """``folder`` (or, when it does not exist yet, its nearest existing parent) refusing a file, as one line."""
-    where = folder
-    while not where.exists() and where != where.parent:
-        where = where.parent
-    if not where.is_dir():
-        return f"{what} {folder}: {where} is a file, not a folder; {CHOOSE}"
-    try:
-        _probe_write(where)
-    except OSError as exc:
-        return f"{what} {folder}: cannot write in {where} ({exc.strerror or exc}); {CHOOSE}"
-    return ""
+    why = write_fault(folder)
+    return f"{what} {folder}: {why}; {CHOOSE}" if why else ""
 
 
 def _figure_fault(path: Path) -> str:
@@ -192,7 +177,7 @@ def output_fault(run_dir: Path, site: Path, figures_dir: Path, inputs: Iterable[
                     f"{', ...' if len(foreign) > 3 else ''}); the book empties its site folder before it writes, "
                     f"so it writes only into a new or empty folder or a site it built: {CHOOSE}")
     try:
-        _probe_write(run_dir)
+        process_io.probe_write(run_dir)
     except OSError as exc:
         return (f"{run_dir}: cannot write in the run folder ({exc.strerror or exc}); the book stages its sources in "
                 "<run>/book_src: copy the run folder somewhere writable (`cp -r RUN /tmp/run`) and build from there")

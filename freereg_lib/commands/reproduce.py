@@ -19,6 +19,8 @@ import sys
 import time
 from pathlib import Path
 
+from freereg_lib.commands.process_io import redirect_stderr
+
 ROOT = Path.cwd()  # the project folder the command runs in (make runs there); never where this file lies
 NOTEBOOKS = ROOT / "notebooks"
 
@@ -39,15 +41,6 @@ def quick(n_pairs: int, seed: int) -> None:
     print(f"\nFreeReg on {n_pairs} synthetic indoor pairs, backend: {backend.label}; "
           f"Kabsch-RANSAC scoring {cfg.kabsch_scoring!r}")
     print(table[cols].to_markdown(index=False, floatfmt=".1f"))
-
-
-def _quiet_worker(log: Path) -> None:
-    """Send a notebook worker's standard error, and its kernels' (they inherit it), to ``log``: the
-    kernels' own chatter ("Kernel is running over TCP without encryption", "No handler found for comm
-    target") is not the run's progress; a notebook's error still reaches the run through papermill."""
-    fd = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
-    os.dup2(fd, 2)
-    os.close(fd)
 
 
 def _execute(nb: Path, target: Path, seed: int, out_dir: Path) -> tuple[float, str | None]:
@@ -81,7 +74,7 @@ def notebooks(out: Path, seed: int, jobs: int | None = None) -> int:
     books = sorted(NOTEBOOKS.glob("[0-9][0-9]_*.ipynb"))
     jobs = max(1, min(jobs or os.cpu_count() or 1, len(books)))
     failed, seconds = [], {}
-    with ProcessPoolExecutor(max_workers=jobs, initializer=_quiet_worker, initargs=(out / "kernels.log",)) as pool:
+    with ProcessPoolExecutor(max_workers=jobs, initializer=redirect_stderr, initargs=(out / "kernels.log",)) as pool:
         futures = {pool.submit(_execute, nb, out / nb.name, seed, out / nb.stem): nb for nb in books}
         for fut in tqdm(as_completed(futures), total=len(futures), desc=f"notebooks ({jobs} at a time)"):
             nb = futures[fut]

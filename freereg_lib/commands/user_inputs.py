@@ -19,6 +19,7 @@ from freereg_lib.data.datasets.demo import DEMO_CAMERAS, load_demo_pair, read_ca
 from freereg_lib.data.pair import Pair
 from freereg_lib.geometry import cameras
 from freereg_lib.commands import inputs_check as IC
+from freereg_lib.commands.process_io import nearest_existing, write_fault
 from freereg_lib.pipeline.register import InputError, _one_line
 
 # Largest plausible extent (bounding-box diagonal, m) of a cloud: beyond, it looks like millimetres.
@@ -57,30 +58,14 @@ def read_intrinsics(path: str | Path) -> np.ndarray:
     raise InputError(f"{path} holds {vals.size} numbers; expected 4 (fx fy cx cy) or 9 (a 3 x 3 matrix)")
 
 
-def _probe_write(folder: Path) -> None:
-    """Create and remove a file in ``folder`` (as root ``os.access`` says yes to a read-only mount)."""
-    import os
-    import tempfile
-
-    fd, name = tempfile.mkstemp(prefix=".freereg-probe-", dir=folder)
-    os.close(fd)
-    os.unlink(name)
-
-
 def output_fault(out: Path) -> str:
     """Why the outputs cannot be written into the folder ``out`` ("" when they can): its nearest
     existing folder refuses a file (a read-only mount, ``/proc``). Checked before the registration
     runs, which takes minutes on a CPU; the outputs were lost after it."""
-    where = Path(out)
-    while not where.exists() and where != where.parent:
-        where = where.parent
-    if not where.is_dir():
+    if not nearest_existing(Path(out)).is_dir():
         return ""  # a file in the way: the caller names it
-    try:
-        _probe_write(where)
-    except OSError as exc:
-        return f"{out}: cannot write in {where} ({exc.strerror or exc}); give --out a folder you can write"
-    return ""
+    why = write_fault(Path(out))
+    return f"{out}: {why}; give --out a folder you can write" if why else ""
 
 
 def failure_hint(pair: Pair, scale: float | None, K_flag: str, depth_flag: str | None) -> str:

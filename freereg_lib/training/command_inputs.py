@@ -14,34 +14,11 @@ an evaluation refuses a damaged folder up front instead of writing rows from it.
 from __future__ import annotations
 
 import json
-import os
 import sys
-import tempfile
 from pathlib import Path
 
+from freereg_lib.commands.process_io import write_fault
 from freereg_lib.training.splits import SPLITS
-
-
-def _probe_write(folder: Path) -> None:
-    """Create and remove a file in ``folder`` (an OSError: the command could not write there; as root
-    ``os.access`` says yes to a read-only mount)."""
-    fd, name = tempfile.mkstemp(prefix=".freereg-probe-", dir=folder)
-    os.close(fd)
-    os.unlink(name)
-
-
-def _where_writable(path: Path) -> str:
-    """Why a new or appended ``path`` cannot be written ("" when it can): its nearest existing folder refuses."""
-    where = path.parent
-    while not where.exists() and where != where.parent:
-        where = where.parent
-    if not where.is_dir():
-        return f"{where} is a file, not a folder"
-    try:
-        _probe_write(where)
-    except OSError as exc:
-        return f"cannot write in {where} ({exc.strerror or exc})"
-    return ""
 
 
 def rows_fault(path: str | Path, command: str, row_key: str, split: str | None = None,
@@ -89,7 +66,7 @@ def rows_fault(path: str | Path, command: str, row_key: str, split: str | None =
                     pass
             except OSError as exc:
                 return f"--rows {path}: cannot append to it ({exc.strerror or exc}); give a writable rows file"
-        why = _where_writable(path)
+        why = write_fault(path.parent)
         if why:
             return f"--rows {path}: {why}; give a rows file in a writable folder"
     return ""
