@@ -171,6 +171,18 @@ def fusion_key_source(name: str) -> str:
     return key_source(name, "03_fusion")
 
 
+# A student_fuse that never returns and swallows the grader's time-out (the grader must stop it).
+HANGING_FUSE = """
+import time
+def student_fuse(f_d, f_g, w):
+    while True:  # a retry loop that swallows everything, the grader's time-out included
+        try:
+            time.sleep(0.1)
+        except BaseException:
+            pass
+"""
+
+
 def fusion_student(folder, *sources: str):
     """A student's ``folder/03_fusion.ipynb`` whose solution cells are ``sources``; its path."""
     return student_notebook(folder, "03_fusion", *sources)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import fusion_key_source, fusion_student
+from conftest import HANGING_FUSE, fusion_key_source, fusion_student
 
 from freereg_lib.teaching import gradebook, wire
 
@@ -26,15 +26,6 @@ def _student(folder: Path, fuse_source: str) -> Path:
     return fusion_student(folder, fusion_key_source("student_mutual_nn"), fuse_source)
 
 
-HANGS = """
-import time
-def student_fuse(f_d, f_g, w):
-    while True:  # a retry loop that swallows everything, the grader's time-out included
-        try:
-            time.sleep(0.1)
-        except BaseException:
-            pass
-"""
 EXITS = """
 import os
 def student_fuse(f_d, f_g, w):
@@ -71,7 +62,7 @@ def student_fuse(f_d, f_g, w):
 
 def test_each_student_in_its_own_process_results_written_as_each_finishes(tmp_path):
     students = {name: _student(tmp_path / "class" / name, source) for name, source in [
-        ("hangs", HANGS), ("exits", EXITS), ("patches", PATCHES_RUNNER), ("numpy", PATCHES_NUMPY),
+        ("hangs", HANGING_FUSE), ("exits", EXITS), ("patches", PATCHES_RUNNER), ("numpy", PATCHES_NUMPY),
         ("memory", fusion_key_source("student_fuse") + HOGS_MEMORY), ("floods", FLOODS),
         ("honest", fusion_key_source("student_fuse"))]}
     out = tmp_path / "grades"

@@ -25,7 +25,7 @@ import zipfile
 from pathlib import Path
 
 import pytest
-from conftest import fill, key_source, student_notebook
+from conftest import HANGING_FUSE, fill, key_source, student_notebook
 
 nbformat = pytest.importorskip("nbformat")
 
@@ -77,17 +77,6 @@ def _run(commands: list[str], cwd: Path) -> list[str]:
     return printed[:-1]
 
 
-HANGS = """
-import time
-def student_fuse(f_d, f_g, w):
-    while True:  # a retry loop that swallows everything, the grader's time-out included
-        try:
-            time.sleep(0.1)
-        except BaseException:
-            pass
-"""
-
-
 def _student_work(handout_zip: Path, desk: Path, name: str) -> Path:
     """A student unpacks the handout and works in its notebooks; their notebooks folder."""
     with zipfile.ZipFile(handout_zip) as z:
@@ -101,7 +90,7 @@ def _student_work(handout_zip: Path, desk: Path, name: str) -> Path:
         if name == "dave":
             for cell in filled.cells:
                 if N._is_solution(cell) and "def student_fuse" in cell.source:
-                    cell.source = HANGS
+                    cell.source = HANGING_FUSE
         if name == "carol":
             for cell in filled.cells:
                 if N._is_solution(cell) and "def student_kabsch" in cell.source:
