@@ -30,36 +30,19 @@ import time
 
 import pandas as pd
 
-from freereg_lib import pipeline
+from freereg_lib.commands import real_frames
 from freereg_lib.commands.verdict_measure import SPLIT, pairs_within
 from freereg_lib.config import config_for
 from freereg_lib.data.datasets.icl import ICLSample
 from freereg_lib.data.sources import spread
 from freereg_lib.models import get_backend
-from freereg_lib.pipeline import verdict
 
 KEEP = ("depth", "solver", "success", "n_matches", "n_inliers", "scale", "null_inliers", "RE", "TE", "seconds")
 
 
 def pair_rows(pair, cfg, depths=("stub", "true"), solvers=("kabsch", "pnp")) -> list[dict]:
     """A row per (depth, solver) of ``pair``: the command's chain, its pose and its per-run null."""
-    backend = get_backend("stub", cfg)
-    rows = []
-    for depth in depths:
-        mono = pair.depth_gt if depth == "true" else backend.mono_depth(pair.image, depth_gt=pair.depth_gt)
-        feats = pipeline.compute_features(pair, backend, cfg, diffusion=False, geometric=True, mono=mono)
-        m = pipeline.match(feats, 0.0)
-        for solver in solvers:
-            t0 = time.perf_counter()
-            res = pipeline.solve(pair, feats, m, cfg, solver)
-            nulls = verdict.null_inliers(pair, feats, m, cfg, solver)
-            seconds = time.perf_counter() - t0
-            scores = pipeline.evaluate(pair, feats, m, res, cfg)
-            rows.append({"pair": pair.name, "depth": depth, "solver": solver, "success": bool(res.success),
-                         "n_matches": len(m), "n_inliers": res.n_inliers, "scale": res.scale,
-                         "null_inliers": ";".join(str(v) for v in nulls), "RE": scores["RE"], "TE": scores["TE"],
-                         "seconds": seconds})
-    return rows
+    return real_frames.pair_rows(pair, get_backend("stub", cfg), cfg, depths, solvers, null=True)
 
 
 def _append(rows: list[dict], out: str) -> None:

@@ -25,6 +25,7 @@ from freereg_lib import pipeline
 from freereg_lib.config import FreeRegConfig, config_for
 from freereg_lib.data.datasets.icl import ICLSample
 from freereg_lib.data.sources import spread
+from freereg_lib.pipeline import verdict
 
 DEPTHS = ("true", "stub")
 SOLVERS = ("kabsch", "pnp")
@@ -49,20 +50,28 @@ def run(n_pairs: int | None = 12, depths=DEPTHS, solvers=SOLVERS, cfg: FreeRegCo
     cfg = cfg or config_for("icl")
     pairs = list(icl_pairs(n_pairs)) if pairs is None else list(pairs)
     backend = get_backend("stub", cfg)
+    return [row for pair in tqdm(pairs, desc="pairs", disable=not progress)
+            for row in pair_rows(pair, backend, cfg, depths, solvers)]
+
+
+def pair_rows(pair, backend, cfg: FreeRegConfig, depths=DEPTHS, solvers=SOLVERS, null: bool = False) -> list[dict]:
+    """The rows of :func:`run` for one pair: FreeReg-G on its depth (``"stub"``: the backend's monocular
+    depth; ``"true"``: ``depth_gt``) with each solver. ``null``: also each pose's per-run null
+    (``null_inliers``, :func:`freereg_lib.pipeline.verdict.null_inliers`, ";"-joined), timed with the solve."""
     rows = []
-    for pair in tqdm(pairs, desc="pairs", disable=not progress):
-        for depth in depths:
-            mono = pair.depth_gt if depth == "true" else backend.mono_depth(pair.image, depth_gt=pair.depth_gt)
-            feats = pipeline.compute_features(pair, backend, cfg, diffusion=False, geometric=True, mono=mono)
-            m = pipeline.match(feats, 0.0)
-            for solver in solvers:
-                t0 = time.perf_counter()
-                res = pipeline.solve(pair, feats, m, cfg, solver)
-                seconds = time.perf_counter() - t0
-                scores = pipeline.evaluate(pair, feats, m, res, cfg)
-                rows.append({"pair": pair.name, "depth": depth, "solver": solver, "success": bool(res.success),
-                             "n_matches": len(m), "n_inliers": res.n_inliers, "scale": res.scale, **scores,
-                             "seconds": seconds, "error": res.reason})
+    for depth in depths:
+        mono = pair.depth_gt if depth == "true" else backend.mono_depth(pair.image, depth_gt=pair.depth_gt)
+        feats = pipeline.compute_features(pair, backend, cfg, diffusion=False, geometric=True, mono=mono)
+        m = pipeline.match(feats, 0.0)
+        for solver in solvers:
+            t0 = time.perf_counter()
+            res = pipeline.solve(pair, feats, m, cfg, solver)
+            extra = {"null_inliers": ";".join(map(str, verdict.null_inliers(pair, feats, m, cfg, solver)))} if null else {}
+            seconds = time.perf_counter() - t0
+            scores = pipeline.evaluate(pair, feats, m, res, cfg)
+            rows.append({"pair": pair.name, "depth": depth, "solver": solver, "success": bool(res.success),
+                         "n_matches": len(m), "n_inliers": res.n_inliers, "scale": res.scale, **scores, **extra,
+                         "seconds": seconds, "error": res.reason})
     return rows
 
 
