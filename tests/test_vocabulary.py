@@ -50,9 +50,11 @@ VERB_ONLY = {
     "freereg_lib/commands/book_inputs.py": "'--out X: holds the run folder' (a folder's contents)",
     "freereg_lib/commands/user_inputs.py": "'K.txt holds 5 numbers' (a file's contents)",
 }
-# A verdict word alone or closing a claim ("holds", "holds here", "does not hold (...)"); a message's verb
-# ("... holds no point") has an object after it.
-VERDICT_WORD = re.compile(r"^\s*(holds|does not hold)(\s*$|\s+here\b|\s+in the mean|\s*[(:,;])")
+# A verdict word alone or closing a claim ("holds", "holds here", "does not hold (...)"), also after a
+# claim's colon inside a longer literal or an f-string's part (f"{claim}: holds ({p})"); a message's verb
+# ("... holds no point", "the map holds: 3") has an object after it or no colon before it.
+VERDICT_WORD = re.compile(r"(?:^|:)\s*(holds|does not hold|same direction, not significant|"
+                          r"opposite direction, (?:not )?significant)(\s*$|\s+here\b|\s+in the mean|\s*[(:,;])")
 
 
 def _verdict_literals(tree: ast.AST):
@@ -92,6 +94,16 @@ def test_no_code_but_the_vocabulary_writes_a_verdict_word():
     assert not found, "verdict words written outside freereg_lib/report/vocabulary.py:\n" + "\n".join(found)
 
 
-def test_the_scan_catches_a_planted_verdict():
-    planted = ast.parse('print(f"fused above both: {\'holds\' if a > b else \'does not hold\'} here")')
-    assert [t for _, t in _verdict_literals(planted)] == ["holds", "does not hold"]
+@pytest.mark.parametrize("source, found", [
+    ('print(f"fused above both: {\'holds\' if a > b else \'does not hold\'} here")', ["holds", "does not hold"]),
+    # An f-string or a format string that writes the verdict after the claim's colon.
+    ('print(f"{claim}: holds ({a} vs {b})")', [": holds ("]),
+    ('line = "%s: holds, p = %.4f" % (claim, p)', ["%s: holds, p = %.4f"]),
+    ('print(f"PnP at least level with Kabsch: opposite direction, significant: {p}")',
+     ["PnP at least level with Kabsch: opposite direction, significant: "]),
+    ('s = claim + ": does not hold here"', [": does not hold here"]),
+    # A verb of a message is no verdict.
+    ('print(f"the colours no depth map holds: {x}", "the cloud holds no point", {"holds": 1}["holds"])', []),
+])
+def test_the_scan_catches_a_planted_verdict(source, found):
+    assert [t for _, t in _verdict_literals(ast.parse(source))] == found
