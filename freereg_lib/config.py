@@ -82,6 +82,9 @@ class FreeRegConfig:
     # Point cloud -> depth map: "official" = proj_pc2dpt (pixel truncated, z + 1e-5, z > 0.05 m,
     # no far limit); "round": nearest pixel within (depth_min, depth_max).
     cloud_projection: str = "official"
+    # > 0: the cloud's depth-camera coordinates rounded to this grid first, so sub-grid changes
+    # (a float64 cloud 5,000 km away keeps ~1e-9 m) flip no exact tie; 0: none, the official.
+    cloud_snap_m: float = ranged(0.0, "[0, inf)")
     # fill_in_multiscale's remaining holes: the official 255 m (a KITTI hint reads them "far");
     # 0 leaves them empty (IP-Basic's own behaviour, "no measurement").
     multiscale_hole_m: float = ranged(255.0, "[0, inf)")
@@ -153,7 +156,7 @@ GROUPS: dict[str, tuple[str, ...]] = {
     "diffusion": ("resize_hw", "t_hat", "ddim_steps", "ddim_eta", "guidance_w", "controlnet_scale", "prompt",
                   "negative_prompt", "layers", "pca_dim", "pca_device"),
     "projection": ("densify", "depth_min", "depth_max", "edge_filter_m", "cloud_far_m", "cloud_near_m",
-                   "cloud_projection", "multiscale_hole_m", "dense_png", "depth_png_scale"),
+                   "cloud_projection", "cloud_snap_m", "multiscale_hole_m", "dense_png", "depth_png_scale"),
     "geometric": ("geometric", "voxel_size", "fpfh_voxel", "fpfh_radius_factor", "normal_radius_factor", "tau_g"),
     "matching": ("fusion_w", "keypoint_grid", "match_device"),
     "solvers": ("ransac_iters", "kabsch_inlier_m", "kabsch_with_scale", "kabsch_scoring", "kabsch_confidence",

@@ -116,6 +116,11 @@ def _parser() -> argparse.ArgumentParser:
 # The dataset settings of config_for that a user's pair can take (README, "Your own data").
 SETTINGS = ("demo", "3dmatch", "scannet", "kitti")
 
+# A user's cloud is rendered with its depth-camera coordinates rounded to 1 um (cfg.cloud_snap_m;
+# --demo and the library default: 0, the official): a depth PNG's cloud ties exactly on pixel and
+# millimetre edges, and the ~1e-9 m a float64 cloud keeps 5,000 km away tipped them another way.
+USER_CLOUD_SNAP_M = 1e-6
+
 
 # A cloud whose projection fills this share of its footprint's pixels is used as a depth map as it
 # is. On its own sensor's camera a depth sensor's cloud fills ~100 % and a thinned one about the
@@ -309,7 +314,8 @@ def register_command(args) -> int:
             extra["fcgf_checkpoint"] = args.fcgf_checkpoint
         try:
             cfg = config_for(name, seed=args.seed, ransac_iters=args.ransac_iters,
-                             kabsch_scoring=args.kabsch_scoring, geometric=args.geometric, extra=extra)
+                             kabsch_scoring=args.kabsch_scoring, geometric=args.geometric, extra=extra,
+                             cloud_snap_m=0.0 if args.demo else USER_CLOUD_SNAP_M)
         except (ValueError, TypeError) as exc:
             return _fail(in_flags(UI._one_line(exc)))
     except R.InputError as exc:

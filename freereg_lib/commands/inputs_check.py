@@ -23,6 +23,8 @@ naming the input and what was expected (docs/troubleshooting.md, "When something
 * :func:`pose_sees_cloud`: a pose that shows almost none of the cloud while it puts most of
   the cloud behind the camera or its inverse shows it (an inverted ``T_cam_pc``, a ``T_pc_cam``
   given as ``T_cam_pc``);
+* :func:`float32_precision`: a cloud stored in float32 (a ``float`` PLY, a float32 ``.npy``) so far
+  from its origin that float32 keeps only centimetres or worse (0.5 m at 5,000 km) is refused;
 * :func:`recentre_offset`: the offset that re-centres a cloud far from its origin (UTM
   coordinates, thousands of km) before solving; :func:`~freereg_lib.pipeline.register.register` applies
   it and restores the pose after, a numerical safeguard that changes nothing for clouds near
@@ -48,6 +50,22 @@ def _error(msg: str) -> Exception:
 
 # --------------------------------------------------------------------------------------
 # Scales and sizes.
+
+FLOAT32_STEP_MAX_M = 0.005  # a float32 cloud whose coordinates keep only steps coarser than this is refused
+
+
+def float32_precision(points: np.ndarray, where: str) -> None:
+    """Refuse a cloud whose every coordinate is a float32 value (a float32 file, read as float64)
+    when float32 keeps only steps coarser than ``FLOAT32_STEP_MAX_M`` at its largest coordinate:
+    its points have been moved by up to half that step (0.25 m at 5,000 km) and no re-centring
+    brings them back. Doubles (float64) keep ~1e-9 m there."""
+    pts = np.asarray(points, dtype=np.float64)
+    big = float(np.max(np.abs(pts[np.isfinite(pts)]), initial=0.0))
+    step = float(np.spacing(np.float32(big)))
+    if step > FLOAT32_STEP_MAX_M and np.array_equal(pts.astype(np.float32).astype(np.float64), pts):
+        raise _error(f"{where} is stored in float32 and lies {big:.4g} m from its origin, where float32 keeps "
+                     f"only steps of {step:g} m: the points have been moved by up to {step / 2:g} m; write it "
+                     "with float64 (double) coordinates, or subtract an offset before saving")
 
 def positive(value, flag: str, what: str) -> float:
     """``value`` as a float when it is finite and > 0, else one line naming ``flag``."""

@@ -152,6 +152,7 @@ def load_inputs(
                                  (H, W), "--K")
     K_img = _as_K(K, (H, W), f"the image intrinsics K for {Path(image).name} ({W} x {H})")
     pts = _read(_read_cloud, cloud, "point cloud")
+    IC.float32_precision(pts, f"the point cloud {cloud}")
     if cloud_scale != 1.0:
         pts = pts * float(cloud_scale)
     check_cloud_units(pts, outdoor, f"the point cloud {cloud}")

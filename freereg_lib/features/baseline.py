@@ -34,7 +34,6 @@ def position_matches(feats, image_size: tuple[int, int], depth_size: tuple[int, 
     image's pixels mapped onto the depth view (``(u + 0.5) * W_d / W - 0.5``, the same for
     ``v``). Returns :class:`~freereg_lib.features.matching.Matches`."""
 
-
     uv_i = np.asarray(feats.uv_image, dtype=np.float64)
     uv_d = np.asarray(feats.uv_depth, dtype=np.float64)
     if len(uv_i) == 0 or len(uv_d) == 0:

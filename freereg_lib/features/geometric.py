@@ -110,7 +110,6 @@ def fcgf_checkpoint_path(cfg, checkpoint=None) -> str:
     weights folder as for the real backend). Raises
     :class:`~freereg_lib.models.MissingWeightsError` when the file is not there."""
 
-
     info = CHECKPOINTS["kitti" if cfg.outdoor else "3dmatch"]
     path = checkpoint or (cfg.extra or {}).get("fcgf_checkpoint")
     if path is None:

@@ -545,7 +545,6 @@ def load_real_diffusion(sd_path: str, controlnet_path: str, cfg, device, dtype,
     from diffusers import AutoencoderKL, ControlNetModel, UNet2DConditionModel
     from transformers import CLIPTextModel, CLIPTokenizer
 
-
     variant = None if check_sd_unet_variant(unet_variant) == "ema" else "non_ema"
     kw = dict(local_files_only=True)
     unet = UNet2DConditionModel.from_pretrained(sd_path, subfolder="unet", torch_dtype=dtype,

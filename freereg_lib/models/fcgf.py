@@ -343,7 +343,6 @@ _CONFIG_GLOBALS = {("easydict", "EasyDict"), ("argparse", "Namespace")}
 
 def _restricted_pickle_module():
 
-
     class Unpickler(pickle.Unpickler):
         def find_class(self, module, name):
             # Protocol 2 (torch.save's) writes Python 2 names, e.g. __builtin__.

@@ -88,8 +88,7 @@ def depth_view(pair: Pair, cfg: FreeRegConfig) -> DepthView:
         official = cfg.cloud_projection == "official"
         raw, index = projection.project_to_depth(
             pair.points, pair.K_depth, cameras.invert(pair.T_pc_sensor), pair.depth_size,
-            cfg.depth_min, cfg.depth_max, pixel="official" if official else "round",
-        )
+            cfg.depth_min, cfg.depth_max, pixel="official" if official else "round", snap=cfg.cloud_snap_m)
     if not np.any((raw > cfg.depth_min) & (raw < cfg.depth_max)):
         where = ("its sensor_depth has no pixel in that range" if pair.sensor_depth is not None
                  else _where_points_went(pair, cfg))
