@@ -259,3 +259,29 @@ def test_a_cloud_far_from_its_origin_gets_the_pose_it_gets_near_it():
     assert re_deg < 1e-3 and centre < 1e-6, (re_deg, centre)
     assert abs(far_reg.errors["RE"] - near_reg.errors["RE"]) < 1e-3 and far_reg.errors["RE"] < 10
     assert np.array_equal(far_reg.pair.points, far.points) and np.allclose(far_reg.pair.T_cam_pc, far.T_cam_pc)
+
+
+# --------------------------------------------------------------------------------------
+# A depth PNG with scattered 65535 pixels (a sensor's "no reading"; issue 63).
+
+def test_scattered_65535_depth_pixels_are_read_as_no_depth_with_a_note(files, tmp_path):
+    # As the official code, whose depth masks ((0.01, 10) m indoors) drop the 65.535 m they
+    # would read as: no depth there, and one line counts them. Before, nothing said so, and a
+    # stub run on such a file ended in "3 usable matches" under a hint about --K.
+    raw = cv2.imread(str(files["image_depth"]), cv2.IMREAD_UNCHANGED)
+    bad = np.random.default_rng(0).random(raw.shape) < 0.2
+    holed = raw.copy()
+    holed[bad] = 65535
+    cv2.imwrite(str(tmp_path / "holed.png"), holed)
+    K = [float(v) for v in files["K"]]
+    pair = UI.load_inputs(files["image"], files["cloud"], K, image_depth=tmp_path / "holed.png",
+                          gt_T_cam_pc=cameras.invert(np.loadtxt(files["gt_T_pc_cam"])))
+    assert np.all(pair.depth_gt[bad] == 0) and np.array_equal(pair.depth_gt[~bad], raw[~bad] / 1000.0)
+    notes = [n for n in pair.meta["notes"] if "65535" in n]
+    assert notes == [f"--image-depth {tmp_path / 'holed.png'}: {int(bad.sum())} of {raw.size} pixels "
+                     f"({100 * bad.mean():.2g} %) hold 65535, a depth sensor's 'no reading': read as no depth, as 0 is"]
+    hint = UI.failure_hint(pair, None, "--K", "--depth-scale 1000")
+    holes = 100 * np.mean(pair.depth_gt == 0)  # the file's own zeros and the 65535s
+    assert f"none at {holes:.0f} % of its pixels (0 or 65535)" in hint and "--backend stub" in hint, hint
+    clean = UI.load_inputs(files["image"], files["cloud"], K, image_depth=files["image_depth"])
+    assert not any("65535" in n for n in clean.meta["notes"])

@@ -12,9 +12,10 @@ import warnings
 from pathlib import Path
 from typing import Callable
 
+import cv2
 import numpy as np
 
-from freereg_lib.data.datasets.common import read_depth, read_points, read_pose_txt, read_rgb
+from freereg_lib.data.datasets.common import INVALID_DEPTH, read_depth, read_points, read_pose_txt, read_rgb
 from freereg_lib.data.datasets.demo import DEMO_CAMERAS, load_demo_pair, read_cameras
 from freereg_lib.data.pair import Pair
 from freereg_lib.geometry import cameras
@@ -79,11 +80,25 @@ def failure_hint(pair: Pair, scale: float | None, K_flag: str, depth_flag: str |
     line = (f"check: the intrinsics {K_flag} (fx {fx:.1f}, fy {fy:.1f}: a {fov[0]:.0f} x {fov[1]:.0f} deg field of view "
             f"for {W} x {H})" + (f" and the depth units {depth_flag}" if depth_flag else "")
             + ": a wrong focal length or depth unit fails this way")
+    holes = 0.0 if pair.depth_gt is None else float(np.mean(~(np.asarray(pair.depth_gt) > 0)))
+    if holes > 0.05:
+        line += (f"; the image depth has none at {100 * holes:.0f} % of its pixels (0 or 65535): with --backend "
+                 "stub, whose monocular depth is made from it, their keypoints get no 3D point and no match")
     if scale is not None and np.isfinite(scale) and scale > 0 and not 0.8 <= scale <= 1.25:
         factor = 1 / scale if scale < 1 else scale
         line += (f"; the scale {scale:.2f} makes the image side {factor:.1f}x {'smaller' if scale < 1 else 'larger'} "
                  "than the cloud: a focal length or a depth unit off by about that factor")
     return line
+
+
+def _invalid_depth_note(path) -> str:
+    """A line counting the pixels of the depth PNG ``path`` that hold 65535, a depth sensor's "no
+    reading" (read as no depth, as 0 is; the official depth masks, (0.01, 10) m indoors, drop the
+    65.535 m it would read as), or "" when none does."""
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    n = int(np.count_nonzero(raw == INVALID_DEPTH)) if raw is not None else 0
+    return (f"--image-depth {path}: {n} of {raw.size} pixels ({100 * n / raw.size:.2g} %) hold {INVALID_DEPTH}, a "
+            "depth sensor's 'no reading': read as no depth, as 0 is" if n else "")
 
 
 def read_pose(path: str | Path | None, what: str) -> np.ndarray | None:
@@ -165,12 +180,13 @@ def load_inputs(
     K_dep = _as_K(depth_K, size, "the depth camera intrinsics (--depth-K)") if depth_K is not None else K_img.copy()
     if depth_K is None and depth_size is not None:
         K_dep = cameras.scale_intrinsics(K_img, size[1] / W, size[0] / H)
-    depth_gt = None
+    depth_gt, invalid_note = None, ""
     if image_depth is not None:
-        depth_gt = _read(lambda p: read_depth(p, depth_scale, 65535, (0.05, 200.0) if outdoor else (0.1, 20.0)),
+        depth_gt = _read(lambda p: read_depth(p, depth_scale, INVALID_DEPTH, (0.05, 200.0) if outdoor else (0.1, 20.0)),
                          image_depth, "image depth")
         if depth_gt.shape != (H, W):
             raise InputError(f"{image_depth} is {depth_gt.shape[1]} x {depth_gt.shape[0]}; the image is {W} x {H}")
+        invalid_note = _invalid_depth_note(image_depth)
     has_gt = gt_T_cam_pc is not None
     if has_camera:
         IC.pose_sees_cloud(cameras.invert(np.asarray(depth_pose, dtype=np.float64)), pts, K_dep, size,
@@ -197,7 +213,7 @@ def load_inputs(
         name=f"{Path(image).stem}-{Path(cloud).stem}",
         meta={"dataset": "files", "outdoor": bool(outdoor), "depth_camera": has_camera, "has_gt": has_gt,
               "image_path": str(image), "cloud_path": str(cloud),
-              "notes": [n for n in [IC.exif_note(image), square_note] if n],
+              "notes": [n for n in [IC.exif_note(image), square_note, invalid_note] if n],
               **({"resampled_from": (H, W)} if square_note else {})},
     )
     try:
