@@ -14,8 +14,13 @@ Everything here treats a student's id and a student's message as hostile text:
 
 The exports: ``grades.csv`` (one row per student: ``id``, the roster's other columns, one column
 per exercise, ``total``, and ``attempts``: what the student's code tried to read or write outside
-its folder) and ``canvas.csv`` (:func:`write_canvas`, Canvas's gradebook import: a ``Points
-Possible`` row under the header, students by ``SIS User ID``).
+its folder), ``points_possible.csv`` (:func:`write_points_possible`: grades.csv's header and one
+``Points Possible`` row, each exercise's maximum and the total's) and ``canvas.csv``
+(:func:`write_canvas`, Canvas's gradebook import: a ``Points Possible`` row under the header,
+students by ``SIS User ID``). grades.csv keeps no such row: Moodle's grade import, pandas and a
+``csv.DictReader`` read every row of it as a student, and a "Points Possible" student would be
+imported, averaged and sorted with the class. A spreadsheet user pastes points_possible.csv's
+second row under grades.csv's header (the columns are the same, in the same order).
 """
 from __future__ import annotations
 
@@ -118,13 +123,28 @@ def _atomic_csv(path: Path, rows: list[list[str]]) -> None:
 
 def write_csv(results: list[dict], path: Path, extra: dict[str, dict[str, str]]) -> None:
     """``grades.csv``: one row per student (id, the roster's other columns, each exercise, total, attempts)."""
-    more = sorted({k for row in extra.values() for k in row} - {"id", "folder"})
+    more = _columns(extra)
     rows = [["id", *more, *EXERCISES, "total", "attempts"]]
     for r in results:
         scores = {e["exercise"]: points(e["score"]) for e in r["exercises"]}
         rows.append([r["id"], *(extra.get(r["id"], {}).get(k, "") for k in more),
                      *(scores.get(n, "0") for n in EXERCISES), points(r["score"]), "; ".join(r.get("attempts", []))])
     _atomic_csv(path, rows)
+
+
+def _columns(extra: dict[str, dict[str, str]]) -> list[str]:
+    """grades.csv's roster columns (besides ``id`` and ``folder``), sorted."""
+    return sorted({k for row in extra.values() for k in row} - {"id", "folder"})
+
+
+def write_points_possible(results: list[dict], path: Path, extra: dict[str, dict[str, str]]) -> None:
+    """``points_possible.csv``: grades.csv's header, then one row ``Points Possible`` with each
+    exercise's maximum and the total's (the roster's columns and ``attempts`` empty)."""
+    more = _columns(extra)
+    top = max((r["max"] for r in results), default=sum(e.max_points for e in EXERCISES.values()))
+    _atomic_csv(path, [["id", *more, *EXERCISES, "total", "attempts"],
+                       ["Points Possible", *("" for _ in more), *(points(e.max_points) for e in EXERCISES.values()),
+                        points(top), ""]])
 
 
 def write_canvas(results: list[dict], path: Path, extra: dict[str, dict[str, str]],

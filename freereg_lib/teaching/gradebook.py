@@ -24,7 +24,7 @@ from freereg_lib.teaching import grader
 from freereg_lib.teaching import notebooks as N
 from freereg_lib.teaching.exercises import EXERCISES, points
 from freereg_lib.teaching.export import (IdError, check_ids, feedback, feedback_file, write_canvas,  # noqa: F401
-                                         write_csv)
+                                         write_csv, write_points_possible)
 
 MAX_NOTEBOOK_BYTES = 50 * 2**20  # a returned "notebook" larger than this is not a notebook
 IGNORE_ALL = "# Written by freereg_lib.teaching: students' work and grades stay out of git.\n*\n"
@@ -173,6 +173,7 @@ def _say(result: dict, verbose: bool) -> None:
 
 def _write(out: Path, results: list[dict], extra: dict[str, dict[str, str]]) -> None:
     write_csv(results, out / "grades.csv", extra)
+    write_points_possible(results, out / "points_possible.csv", extra)
     write_canvas(results, out / "canvas.csv", extra)
 
 
@@ -180,8 +181,8 @@ def grade_all(paths: list[str | Path], out: str | Path | None = None, roster: st
               seed: int | None = None, timeout: float = grader.CASE_TIMEOUT_S, limit: float = grader.STUDENT_LIMIT_S,
               memory_mb: int = grader.MEMORY_MB, confine: bool = True, verbose: bool = False,
               echo: bool = True) -> list[dict]:
-    """Grade every submission on the same inputs; with ``out``, ``grades.csv``, ``canvas.csv`` and
-    ``feedback/`` are (re)written as each student finishes. One result per student, whatever
+    """Grade every submission on the same inputs; with ``out``, ``grades.csv``, ``points_possible.csv``,
+    ``canvas.csv`` and ``feedback/`` are (re)written as each student finishes. One result per student, whatever
     happened. The ids are checked first (:func:`plan`: :class:`IdError` before any grading)."""
     rows = read_roster(roster) if roster else []
     planned = plan(paths, rows)
@@ -217,7 +218,8 @@ def grade_all(paths: list[str | Path], out: str | Path | None = None, roster: st
         _write(out, results, extra)
     if echo:
         if out:
-            print(f"{len(results)} students: {out / 'grades.csv'}, {out / 'canvas.csv'} and {out / 'feedback'}/")
+            print(f"{len(results)} students: {out / 'grades.csv'} (its maxima: {out / 'points_possible.csv'}), "
+                  f"{out / 'canvas.csv'} and {out / 'feedback'}/")
         if tried:
             print(f"{len(tried)} student(s) tried to read or write outside their folder (refused; listed in the "
                   f"column 'attempts' of grades.csv): {', '.join(tried)}")
