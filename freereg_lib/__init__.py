@@ -30,7 +30,8 @@ SHORT_NAMES = {
     **{m: f"freereg_lib.data.{m}" for m in ("synthetic", "datasets", "sources", "paper")},
     **{m: f"freereg_lib.features.{m}" for m in ("matching", "geometric", "baseline")},
     "register": "freereg_lib.pipeline.register",
-    **{m: f"freereg_lib.report.{m}" for m in ("plots", "charts", "committed_charts", "params", "registration", "pair_files", "vocabulary")},
+    **{m: f"freereg_lib.report.{m}" for m in ("plots", "charts", "committed_charts", "params", "registration",
+                                               "pair_files", "vocabulary", "claims")},
     **{m: f"freereg_lib.commands.{m}" for m in ("batch", "cache", "user_inputs")},
 }
 

@@ -92,3 +92,18 @@ def test_metric_axes_in_percent_and_depth_colour_bars_in_metres():
         fig = draw([np.zeros((10, 20, 3)), plots.depth_panel(np.full((10, 20), 2.0))], ["a", "b"])
         assert [a.get_ylabel() for a in fig.axes if a.get_label() == "<colorbar>"] == ["depth (m)"]
         plt.close(fig)
+
+
+def test_a_paper_beside_run_table_names_its_backend_once_above_it(capsys):
+    """The backend (and any column given that holds one value) is a caption line, not a column repeated in
+    every row; a column with several values stays."""
+    from freereg_lib.data import paper
+
+    ours = pd.DataFrame({"w": [1.0, 0.5, 0.0], "IR": [19.4, 20.3, 4.3], "RR": [10.0, 17.0, 1.0]})
+    label = "micro backend (SD-layout diffusion models + ZoeDepth, trained on synthetic rooms)"
+    table = paper.side_by_side(paper.table("table4_fusion_weight"), ours, ["w"], ["IR", "RR"], backend=label)
+    assert (table["backend"] == label).all()  # the CSV keeps it
+    shown = charts.captioned(table.assign(split=["a", "b"] * (len(table) // 2) + ["a"] * (len(table) % 2)),
+                             ("backend", "split"))
+    assert capsys.readouterr().out == f"backend: {label}\n"
+    assert "backend" not in shown.columns and "split" in shown.columns and len(shown) == len(table)

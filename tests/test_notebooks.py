@@ -6,8 +6,9 @@
   the tiny backend at 5 DDIM steps for 01, the embedded ICL sample for 02 and 04, a demo-layout pair for 04) into a temporary
   ``out_dir`` / ``figures_dir``; the tables it writes (CSV) and figures (PNG) must be there,
   and the metric columns of the tables must hold finite numbers; no Markdown cell of the
-  executed copy states a number its outputs contradict (:mod:`freereg_lib.report.prose`), in
-  notebook 00's a number and a glue name planted into its Markdown are flagged, and every exercise
+  executed copy states a number or a claim its outputs contradict (:mod:`freereg_lib.report.prose`), in
+  notebook 00's a number and a glue name planted into its Markdown are flagged, the contradicted sentences
+  of tests/test_prose.py's ``PLANTED`` are read against the run's ``check:`` lines, and every exercise
   (the answer key's solution cells) passes its check cell, unskipped.
 * ``python -m freereg_lib reproduce --quick`` prints a Markdown table of FMR / IR / IN / RR.
 
@@ -205,6 +206,9 @@ def _check_prose(nb, stem: str) -> None:
     assert problems == [], "\n".join(map(str, problems))
     referenced = {n for c in nb["cells"] if c["cell_type"] == "markdown" for n in glue_references(c["source"])}
     assert referenced <= glued_names(nb), f"{stem}: referenced but not glued: {referenced - glued_names(nb)}"
+    from test_prose import assert_planted_contradictions_flagged
+
+    assert_planted_contradictions_flagged(nb, stem)  # the quoted contradictions, against this run's checks
     if stem != "00_preliminaries":
         return
     assert referenced

@@ -25,6 +25,16 @@ def _metric_axis(ax, metric: str, label: str | None = None) -> None:
         ax.yaxis.set_major_formatter(PercentFormatter(xmax=100, decimals=0))
 
 
+def captioned(table, columns=("backend",)):
+    """A paper-beside-run table for the page: each of ``columns`` that holds one value in every row (the
+    backend that produced the re-run, the paper's dataset) is printed once, as a caption line above the
+    table, and dropped from it; a column with several values stays. The CSV keeps every column."""
+    same = [c for c in columns if c in table.columns and table[c].nunique(dropna=False) == 1]
+    if same:
+        print("; ".join(f"{c}: {table[c].iloc[0]}" for c in same))
+    return table.drop(columns=same)
+
+
 def error_curves(errors: dict[str, np.ndarray], xlabel: str, title: str, xmax: float | None = None):
     """Cumulative curves: for each label, the % of pairs with error below x."""
     plt = _plt()

@@ -306,6 +306,24 @@ def topdown_clouds(clouds: dict, title: str = "", max_points: int = 20000, seed:
     return fig
 
 
+def keypoint_colours(feats_a: np.ndarray, feats_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The RGB colours of :func:`keypoint_feature_pca`: a 3-component PCA of the unit descriptors of
+    both sides, one basis, each channel stretched to its 1-99 % range; ``(colours (Na + Nb, 3), has)``,
+    the rows of ``feats_a`` first, grey where a keypoint has no feature (``has`` False)."""
+    flat = np.concatenate([np.asarray(feats_a, dtype=np.float64), np.asarray(feats_b, dtype=np.float64)])
+    norm = np.linalg.norm(flat, axis=1)
+    has = norm > 0
+    colours = np.full((len(flat), 3), 0.5)
+    if has.sum() >= 3:
+        x = flat[has] / norm[has, None]
+        mean = x.mean(0)
+        _, _, vt = np.linalg.svd(x - mean, full_matrices=False)
+        proj = (x - mean) @ vt[:3].T
+        lo, hi = np.percentile(proj, 1, axis=0), np.percentile(proj, 99, axis=0)
+        colours[has] = np.clip((proj - lo) / (hi - lo + 1e-8), 0, 1)
+    return colours, has
+
+
 def keypoint_feature_pca(image_a: np.ndarray, uv_a: np.ndarray, feats_a: np.ndarray,
                          image_b: np.ndarray, uv_b: np.ndarray, feats_b: np.ndarray,
                          titles: tuple[str, str] = ("image", "depth map"), title: str = "",
@@ -317,20 +335,9 @@ def keypoint_feature_pca(image_a: np.ndarray, uv_a: np.ndarray, feats_a: np.ndar
     """
     plt = _plt()
     fa = np.asarray(feats_a, dtype=np.float64)
-    fb = np.asarray(feats_b, dtype=np.float64)
-    flat = np.concatenate([fa, fb])
-    norm = np.linalg.norm(flat, axis=1)
-    has = norm > 0
-    colours = np.full((len(flat), 3), 0.5)
-    if has.sum() >= 3:
-        x = flat[has] / norm[has, None]
-        mean = x.mean(0)
-        _, _, vt = np.linalg.svd(x - mean, full_matrices=False)
-        proj = (x - mean) @ vt[:3].T
-        lo, hi = np.percentile(proj, 1, axis=0), np.percentile(proj, 99, axis=0)
-        colours[has] = np.clip((proj - lo) / (hi - lo + 1e-8), 0, 1)
+    colours, has = keypoint_colours(fa, feats_b)
     fig, axes = plt.subplots(1, 2, figsize=(FIG_WIDTH_IN, 3.7))
-    parts = ((image_a, uv_a, slice(0, len(fa))), (image_b, uv_b, slice(len(fa), len(flat))))
+    parts = ((image_a, uv_a, slice(0, len(fa))), (image_b, uv_b, slice(len(fa), len(colours))))
     for ax, (img, uv, sl), sub in zip(axes, parts, titles):
         uv = np.asarray(uv, dtype=np.float64)
         ax.imshow(img, alpha=0.45)

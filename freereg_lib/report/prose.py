@@ -11,7 +11,10 @@ backend, seed, number of pairs, a retrained model) and then contradicts the outp
 * ``number``: a number in a Markdown cell that is neither glued nor one of the exempt kinds below;
 * ``glue``: a ``{glue...}`` reference whose name the run did not glue (the book would fail on it);
 * ``verdict``: a verdict on a claim of the paper typed in prose ("the fusion claim holds here"): verdicts
-  are printed by the run through :mod:`freereg_lib.report.vocabulary`, with their numbers and test.
+  are printed by the run through :mod:`freereg_lib.report.vocabulary`, with their numbers and test;
+* ``claim``: a direction or a description ("the sky stays empty", "recall falls as the error grows")
+  that a check line the run printed contradicts (:mod:`freereg_lib.report.claims`);
+* ``printed verdict``: a printed line whose verdict is not the vocabulary's for its own numbers.
 
 Exempt, because they do not depend on the run:
 
@@ -58,7 +61,7 @@ class Problem:
 
     cell: int
     cell_id: str
-    kind: str      # "number" | "glue" | "verdict"
+    kind: str      # "number" | "glue" | "verdict" | "claim" | "printed verdict"
     found: str     # the number as written, the glue name, or the verdict words
     context: str   # the words around it
 
@@ -66,7 +69,9 @@ class Problem:
         what = {"number": f"number {self.found!r} is neither glued nor a declared fact",
                 "glue": f"glue name {self.found!r} was not glued by this run",
                 "verdict": f"verdict {self.found!r} typed by hand (a verdict is printed by the run, "
-                           "freereg_lib.report.vocabulary)"}[self.kind]
+                           "freereg_lib.report.vocabulary)",
+                "claim": f"claim contradicted by the run: {self.found}",
+                "printed verdict": f"printed verdict {self.found}"}[self.kind]
         return f"cell {self.cell} (id {self.cell_id}): {what}: ...{self.context}..."
 
 
@@ -241,7 +246,8 @@ def notebook_name(nb: Mapping[str, Any]) -> str:
 
 
 def check_notebook(nb: Mapping[str, Any], name: str | None = None) -> list[Problem]:
-    """The problems of an executed notebook's Markdown: hand-typed numbers and glue names not glued.
+    """The problems of an executed notebook: hand-typed numbers, glue names not glued, verdicts typed by
+    hand, claims its printed checks contradict, printed verdicts its own numbers contradict.
 
     Args:
         nb: the executed notebook, as nbformat reads it (a dict works too).
@@ -249,16 +255,22 @@ def check_notebook(nb: Mapping[str, Any], name: str | None = None) -> list[Probl
     """
     name = notebook_name(nb) if name is None else name
     facts = COMMON + FACTS.get(name, ())
-    glued = glued_names(nb)
+    from freereg_lib.report import claims
+
+    glued, checks = glued_names(nb), claims.printed_checks(nb)
     problems = []
     for k, cell in enumerate(nb.get("cells", [])):
         if cell.get("cell_type") != "markdown":
+            problems += [Problem(k, str(cell.get("id", "")), "printed verdict", why, line[:120])
+                         for line, why in claims.printed_verdicts({"cells": [cell]})]
             continue
         source = cell["source"] if isinstance(cell["source"], str) else "".join(cell["source"])
         cid = str(cell.get("id", ""))
         problems += [Problem(k, cid, "glue", ref, ref) for ref in glue_references(source) if ref not in glued]
         problems += [Problem(k, cid, "number", num, ctx) for num, ctx in stated_numbers(source, facts)]
         problems += [Problem(k, cid, "verdict", words, ctx) for words, ctx in stated_verdicts(source)]
+        problems += [Problem(k, cid, "claim", str(c), " ".join(c.clause.split())[:120])
+                     for c in claims.contradictions(source, checks)]
     return problems
 
 
