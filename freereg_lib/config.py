@@ -176,7 +176,7 @@ def config_for(dataset: str, kitti_trans_threshold: float = 3.0, **changes) -> F
     ``kitti_trans_threshold=4.0`` for the latter.
     """
     name = dataset.lower().replace("-", "_")
-    indoor = {"3dmatch", "scannet", "demo", "icl", "synthetic_indoor", "synthetic", "indoor"}
+    indoor = {"3dmatch", "scannet", "demo", "icl", "synthetic_indoor", "synthetic_rooms", "synthetic", "indoor"}
     outdoor = {"kitti", "kitti_dc", "synthetic_outdoor", "outdoor"}
     if name in indoor:
         base = FreeRegConfig()

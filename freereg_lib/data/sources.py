@@ -15,7 +15,9 @@ from freereg_lib.data.datasets.icl import ICLSample
 from freereg_lib.data.pair import Pair, UnreadablePair, load_or_record
 from freereg_lib.data.shards import parse_shard, shard_items
 
-SYNTHETIC = ("synthetic_indoor", "synthetic_outdoor")
+# "synthetic_rooms" is the indoor world calibrated against real rooms; "synthetic_indoor" the blocks
+# world the committed micro models were trained and measured in.
+SYNTHETIC = ("synthetic_indoor", "synthetic_outdoor", "synthetic_rooms")
 EMBEDDED = ("icl",)
 ON_DISK = ("3dmatch", "scannet", "kitti", "kitti_dc", "demo")
 
@@ -97,10 +99,12 @@ def iter_pairs(
     if name in SYNTHETIC:
 
         kind = name.split("_")[1]
+        world = {"rooms": "rooms"}.get(kind, "blocks")
         for k in range(index, n_pairs if n_pairs is not None else 10, count):
             pair_seed = seed * 1_000_003 + k
             synthetic.check_eval_seed(pair_seed)  # raised, not recorded: no pair may be a training room
-            yield load_or_record(f"synthetic-{kind}/seed{pair_seed:04d}", synthetic.make_pair, kind, seed=pair_seed)
+            yield load_or_record(f"synthetic-{kind}/seed{pair_seed:04d}", synthetic.make_pair,
+                                 "outdoor" if kind == "outdoor" else "indoor", seed=pair_seed, world=world)
         return
     if name == "icl":
         sample = _icl(root)

@@ -47,7 +47,7 @@ import numpy as np
 from tqdm import tqdm
 
 from freereg_lib.models.micro import depth as MD
-from freereg_lib.training.views import DEPTH_HW, RENDER_HW, load_or_render
+from freereg_lib.training.views import DEPTH_HW, RENDER_HW, WORLD_KINDS, load_or_render
 from freereg_lib.training.provenance import machine_record
 
 VAL_SCENES = 20
@@ -60,6 +60,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--views", default=None, help="the rendered views (.npz); default OUT/../views_indoor.npz")
     p.add_argument("--scenes", type=int, default=500, help="training rooms")
     p.add_argument("--views-per-scene", type=int, default=4)
+    p.add_argument("--world", default="indoor", choices=WORLD_KINDS,
+                   help="the synthetic world: indoor (blocks, the committed weights') or rooms (calibrated)")
     p.add_argument("--steps", type=int, default=1500)
     p.add_argument("--batch", type=int, default=8)
     p.add_argument("--lr", type=float, default=5e-4)
@@ -286,7 +288,8 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads or os.cpu_count() or 1)
     t_start = time.perf_counter()
     out = Path(args.out)
-    views = load_or_render(args.views or out.parent / "views_indoor.npz", args.scenes, args.views_per_scene)
+    views = load_or_render(args.views or out.parent / f"views_{args.world}.npz", args.scenes, args.views_per_scene,
+                           kind=args.world)
     data = Data(cached_pixels(views, out), views["depth"], args.views_per_scene)
     print(f"{len(data.pixels)} views ({data.n_train} training, {len(data.val)} validation), pixel values "
           f"{tuple(data.pixels.shape[1:])}, true depth {tuple(data.depth.shape[1:])}", flush=True)

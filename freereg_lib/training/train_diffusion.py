@@ -49,7 +49,7 @@ import numpy as np
 from tqdm import tqdm
 
 from freereg_lib.models.micro import diffusion as M
-from freereg_lib.training.views import load_or_render
+from freereg_lib.training.views import WORLD_KINDS, load_or_render
 from freereg_lib.training.provenance import machine_record
 
 STAGES = ("vae", "unet", "controlnet")
@@ -64,6 +64,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--views", default=None, help="the rendered views (.npz); default OUT/../views_indoor.npz")
     p.add_argument("--scenes", type=int, default=500, help="training rooms")
     p.add_argument("--views-per-scene", type=int, default=4)
+    p.add_argument("--world", default="indoor", choices=WORLD_KINDS,
+                   help="the synthetic world: indoor (blocks, the committed weights') or rooms (calibrated)")
     p.add_argument("--stages", nargs="+", default=list(STAGES), choices=STAGES)
     p.add_argument("--steps-vae", type=int, default=700)
     p.add_argument("--steps-unet", type=int, default=2000)
@@ -481,7 +483,8 @@ def main(argv=None) -> int:
     t_start = time.perf_counter()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    views = load_or_render(args.views or out.parent / "views_indoor.npz", args.scenes, args.views_per_scene)
+    views = load_or_render(args.views or out.parent / f"views_{args.world}.npz", args.scenes, args.views_per_scene,
+                           kind=args.world)
     device = torch.device(args.device)
     data = Data(views, args.views_per_scene, device)
     print(f"{len(data.rgb)} views ({data.n_train} training, {len(data.val)} validation) of "

@@ -33,6 +33,8 @@ TRAIN_STREAM = TRAIN_ROOMS  # 0xF3EE0001
 RENDER_HW = (480, 640)
 DIFFUSION_HW = (128, 192)
 DEPTH_HW = (120, 160)
+# "indoor": the blocks world the committed weights were trained in; "rooms": the calibrated world.
+WORLD_KINDS = ("indoor", "rooms")
 
 
 def room_rng(k: int) -> np.random.Generator:
@@ -51,24 +53,26 @@ def _scene_views(args) -> dict[str, np.ndarray]:
 
     from freereg_lib.config import FreeRegConfig
     from freereg_lib.data.pair import Pair
+    from freereg_lib.data.synthetic import rooms
     from freereg_lib.data.synthetic.indoor import _indoor_camera, _indoor_scene
     from freereg_lib.data.synthetic.pairs import _subsample
     from freereg_lib.geometry.cameras import backproject, intrinsics, invert, transform
     from freereg_lib.models.base import depth_hint, resize_to
     from freereg_lib.pipeline import depth_view
 
-    if kind != "indoor":
-        raise ValueError(f"training views exist for the indoor world only, got kind={kind!r}")
+    if kind not in WORLD_KINDS:
+        raise ValueError(f"training views exist for the indoor worlds only {WORLD_KINDS}, got kind={kind!r}")
+    scene_of, camera_of = (_indoor_scene, _indoor_camera) if kind == "indoor" else (rooms.room_scene, rooms.scan_camera)
     cfg = FreeRegConfig()
     rng = room_rng(k)
     art = sense.rng(k) if sense is not None else None
-    scene, room = _indoor_scene(rng)
+    scene, room = scene_of(rng)
     H, W = RENDER_HW
     f = 525.0 * W / 640
     K = intrinsics(f, f, (W - 1) / 2, (H - 1) / 2)
     out = {"rgb": [], "hint": [], "depth": []}
     for _ in range(views_per_scene):
-        T_world_cam = _indoor_camera(rng, room)
+        T_world_cam = camera_of(rng, room)
         hits, depth, _ids = scene.camera_view(T_world_cam, K, RENDER_HW)
         image = scene.shade(hits, RENDER_HW)
         if sense is None:
@@ -124,24 +128,26 @@ def progress_map(fn, jobs: list, workers: int | None, desc: str, unit: str, prog
 
 
 def load_or_render(path: str | Path, n_scenes: int, views_per_scene: int = 4,
-                   progress: bool = True) -> dict[str, np.ndarray]:
+                   progress: bool = True, kind: str = "indoor") -> dict[str, np.ndarray]:
     """The views cached in ``path`` (``.npz``), rendered and saved first when absent or made
-    with other counts."""
+    with other counts or in another world (``kind``, :data:`WORLD_KINDS`)."""
     path = Path(path)
     if path.exists():
         with np.load(path) as z:
-            if int(z["n_scenes"]) == n_scenes and int(z["views_per_scene"]) == views_per_scene:
+            cached_kind = str(z["kind"]) if "kind" in z.files else "indoor"
+            if int(z["n_scenes"]) == n_scenes and int(z["views_per_scene"]) == views_per_scene and cached_kind == kind:
                 return {k: z[k] for k in ("rgb", "hint", "depth")}
-    views = render_views(n_scenes, views_per_scene, progress=progress)
-    save_views(views, path, n_scenes, views_per_scene)
+    views = render_views(n_scenes, views_per_scene, kind=kind, progress=progress)
+    save_views(views, path, n_scenes, views_per_scene, kind)
     return views
 
 
-def save_views(views: dict[str, np.ndarray], path: str | Path, n_scenes: int, views_per_scene: int) -> None:
+def save_views(views: dict[str, np.ndarray], path: str | Path, n_scenes: int, views_per_scene: int,
+               kind: str = "indoor") -> None:
     """Cache ``views`` in ``path`` (``.npz``) as :func:`load_or_render` reads them; written whole
     or not at all."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, n_scenes=n_scenes, views_per_scene=views_per_scene, **views)
+    np.savez(tmp, n_scenes=n_scenes, views_per_scene=views_per_scene, kind=kind, **views)
     os.replace(tmp, path)

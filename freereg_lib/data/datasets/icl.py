@@ -18,13 +18,18 @@ from freereg_lib.data.pair import Pair, load_or_record
 from freereg_lib.geometry import cameras
 
 ICL_ROOT = Path(__file__).resolve().parent.parent / "icl_livingroom"
+# Real Kinect v1 frames of an office desk in the same layout (TUM RGB-D fr1_rpy, undistorted; its README).
+TUM_ROOT = Path(__file__).resolve().parent.parent / "tum_fr1_rpy"
 
 
 class ICLSample:
-    """Reader of the ICL folder (colour/, depth/, trajectory.log, intrinsics.json)."""
+    """Reader of the ICL folder (colour/, depth/, trajectory.log, intrinsics.json), or of any folder in
+    its layout (:data:`TUM_ROOT`); a ``trajectory_depth.log`` beside it gives the depth frames' own
+    poses (a sensor that takes depth and colour at different instants)."""
 
     def __init__(self, root: str | Path = ICL_ROOT):
         self.root = Path(root)
+        self.prefix = "icl" if self.root.resolve() == ICL_ROOT else self.root.name  # of the pairs' names
         intr_path = self.root / "intrinsics.json"
         if not intr_path.is_file():
             raise FileNotFoundError(f"missing {intr_path}: is {self.root} an ICL sample folder?")
@@ -38,18 +43,21 @@ class ICLSample:
                                           self.size, str(intr_path))
         self.depth_scale = float(intr["depth_scale"])
         self.poses = read_redwood_log(self.root / "trajectory.log")
+        depth_log = self.root / "trajectory_depth.log"
+        self.depth_poses = read_redwood_log(depth_log) if depth_log.is_file() else self.poses
         self.frames = sorted(int(p.stem) for p in (self.root / "color").glob("*.jpg"))
         missing = sorted(set(self.frames) - set(self.poses))
         if missing:
             raise ValueError(f"{self.root}: frames {missing} have images but no pose in trajectory.log")
 
-    def pose(self, frame: int) -> np.ndarray:
-        """``T_world_cam (4, 4)`` of ``frame``, its rotation re-orthonormalised.
+    def pose(self, frame: int, depth: bool = False) -> np.ndarray:
+        """``T_world_cam (4, 4)`` of ``frame`` (of its depth image with ``depth``), its rotation
+        re-orthonormalised.
 
         The .log stores 8 decimals, so the raw rotation is off orthonormal by ~1e-7, enough
         to read an identical pose as a 0.006 deg error.
         """
-        T = self.poses[frame].copy()
+        T = (self.depth_poses if depth else self.poses)[frame].copy()
         U, _, Vt = np.linalg.svd(T[:3, :3])
         T[:3, :3] = U @ Vt
         return T
@@ -74,10 +82,10 @@ class ICLSample:
             K_depth=self.K.copy(),
             depth_size=self.size,
             T_pc_sensor=np.eye(4),
-            T_cam_pc=cameras.invert(self.pose(i)) @ self.pose(j),
+            T_cam_pc=cameras.invert(self.pose(i)) @ self.pose(j, depth=True),
             depth_gt=self.depth(i),
             sensor_depth=depth_j,
-            name=f"icl/{i:05d}-{j:05d}",
+            name=f"{self.prefix}/{i:05d}-{j:05d}",
             meta={"dataset": "icl", "frame_image": i, "frame_cloud": j},
         )
 

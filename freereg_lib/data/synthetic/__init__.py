@@ -28,10 +28,10 @@ from freereg_lib.data.synthetic.outdoor import (
            LIDAR_ELEVATIONS_DEG,
            LIDAR_HEIGHT,
 )
-from freereg_lib.data.synthetic.pairs import DEFAULT_IMAGE_SIZE, KINDS, MAX_POINTS, make_pair, make_pairs, overlap_ratio
+from freereg_lib.data.synthetic.pairs import DEFAULT_IMAGE_SIZE, KINDS, MAX_POINTS, WORLDS, make_pair, make_pairs, overlap_ratio
 from freereg_lib.data.synthetic.render import CLASS_NAMES
 from freereg_lib.data.synthetic.seeds import TRAINING_STREAMS, TrainingSeedError, check_eval_seed
 
 __all__ = ["CLASS_NAMES", "KINDS", "DEFAULT_IMAGE_SIZE", "MAX_POINTS", "LIDAR_HEIGHT", "LIDAR_ELEVATIONS_DEG",
-           "LIDAR_AZIMUTH_STEPS", "CAMERA_HEIGHT_OUTDOOR", "make_pair", "make_pairs", "overlap_ratio",
+           "LIDAR_AZIMUTH_STEPS", "CAMERA_HEIGHT_OUTDOOR", "WORLDS", "make_pair", "make_pairs", "overlap_ratio",
            "TRAINING_STREAMS", "TrainingSeedError", "check_eval_seed"]

@@ -24,11 +24,15 @@ from freereg_lib.data.synthetic.outdoor import (
     _outdoor_lidar,
     _outdoor_scene,
 )
+from freereg_lib.data.synthetic import rooms
 from freereg_lib.data.synthetic.render import _Looks
 from freereg_lib.data.synthetic.seeds import check_eval_seed
 from freereg_lib.geometry.cameras import backproject, intrinsics, invert, project, transform
 
 KINDS = ("indoor", "outdoor")
+# The indoor worlds: "blocks", the rooms of 2026-12 that the committed micro models were trained and
+# measured in; "rooms", calibrated against real rooms (:mod:`.rooms`).
+WORLDS = ("blocks", "rooms")
 DEFAULT_IMAGE_SIZE = {"indoor": (480, 640), "outdoor": (256, 832)}
 MAX_POINTS = 60_000
 
@@ -79,10 +83,11 @@ def _seed_label(seed) -> str:
 def make_pair(
     kind: str = "indoor",
     seed: int | tuple[int, ...] = 0,
-    overlap: tuple[float, float] = (0.3, 0.8),
+    overlap: tuple[float, float] | None = None,
     image_size: tuple[int, int] | None = None,
     depth_camera_image: bool = False,
     appearance_seed: int | tuple[int, ...] | None = None,
+    world: str = "blocks",
 ) -> Pair:
     """One synthetic image-to-point-cloud pair.
 
@@ -98,6 +103,11 @@ def make_pair(
     ``image_ids (H, W) int32``, ``K_image`` and ``K_depth (3, 3)``, ``depth_size = (H, W)``,
     ``T_pc_sensor`` the depth camera in the world, ``T_cam_pc`` the world in the camera.
 
+    ``world`` (indoor only) is ``"blocks"``, the rooms of boxes the committed micro models were
+    trained and measured in, or ``"rooms"``, the world calibrated against real rooms (:mod:`.rooms`:
+    clutter, hand-held scan pairs). ``overlap=None`` is ``(0.3, 0.8)`` in ``blocks`` and outdoors
+    and 3DMatch's protocol, above 0.3, in ``rooms``.
+
     ``seed`` may also be a tuple of integers (a NumPy seed sequence), as the micro models'
     training pairs are drawn. An integer seed that NumPy would turn into a training stream's
     sequence (its low 32 bits a training tag, :mod:`.seeds`) raises ``TrainingSeedError``.
@@ -112,7 +122,9 @@ def make_pair(
     """
     if kind not in KINDS:
         raise ValueError(f"unknown synthetic kind {kind!r}; expected one of {KINDS}")
-    lo, hi = _check_overlap(overlap)
+    if world not in WORLDS or (world != "blocks" and kind != "indoor"):
+        raise ValueError(f"unknown synthetic world {world!r} for {kind!r}; expected one of {WORLDS} (indoor)")
+    lo, hi = _check_overlap(overlap or ((0.3, 1.0) if world == "rooms" else (0.3, 0.8)))
     if isinstance(seed, (int, np.integer)):
         check_eval_seed(seed)  # an integer never draws a training room (tuples are training's own form)
     H, W = image_size if image_size is not None else DEFAULT_IMAGE_SIZE[kind]
@@ -128,9 +140,11 @@ def make_pair(
 
     if kind == "indoor":
         redraw = None if appearance_seed is None else np.random.default_rng(appearance_seed)
-        scene, room = _indoor_scene(rng, _Looks(rng, redraw))
-        sample_camera = functools.partial(_indoor_camera, room=room)
-        sample_sensor = functools.partial(_indoor_sensor, room=room)
+        scene_of, camera_of, sensor_of = (_indoor_scene, _indoor_camera, _indoor_sensor) if world == "blocks" else (
+            rooms.room_scene, rooms.scan_camera, rooms.scan_sensor)
+        scene, room = scene_of(rng, _Looks(rng, redraw))
+        sample_camera = functools.partial(camera_of, room=room)
+        sample_sensor = functools.partial(sensor_of, room=room)
         depth_view = _same_pose  # the sensor is itself the depth camera
     else:
         scene = _outdoor_scene(rng)
@@ -186,8 +200,8 @@ def make_pair(
                 depth_frame_gt=sensor_depth if kind == "indoor" else None,
                 image_ids=image_ids,
                 point_ids=point_ids[keep].astype(np.int32),
-                name=f"synthetic-{kind}/{_seed_label(seed)}",
-                meta={"dataset": "synthetic", "kind": kind, "outdoor": kind == "outdoor",
+                name=f"synthetic-{'rooms' if world == 'rooms' else kind}/{_seed_label(seed)}",
+                meta={"dataset": "synthetic", "kind": kind, "world": world, "outdoor": kind == "outdoor",
                       "seed": seed, "overlap_range": (lo, hi)},
             )
             ratio = overlap_ratio(pair)

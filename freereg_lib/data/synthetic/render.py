@@ -41,6 +41,10 @@ CLASS_NAMES: dict[int, str] = {
     17: "pole",
     18: "trunk",
     19: "foliage",
+    20: "bed",  # the "rooms" world's own classes (rooms.py)
+    21: "book",
+    22: "clutter",
+    23: "decor",
 }
 _ID = {name: i for i, name in CLASS_NAMES.items()}
 
