@@ -130,7 +130,7 @@ FACTS: dict[str, tuple[Fact, ...]] = {
     ),
     "05_your_data": (
         Fact(r"scale near 1|are 0 or 100", "the plausibility rule (a scale near one); a single pair's FMR and RR"),
-        Fact(r"default inputs are the embedded ICL living-room frames 10 and 40 at half resolution",
+        Fact(r"default inputs are the embedded ICL living-room frames 180 and 200 at half resolution",
              "the parameters' defaults (icl_frames, scale), named as defaults"),
     ),
 }
