@@ -241,8 +241,8 @@ def test_a_cloud_far_from_its_origin_gets_the_pose_it_gets_near_it():
     T_off = cameras.make_pose(np.eye(3), offset)
     far = dataclasses.replace(pair, points=pair.points + offset, T_pc_sensor=T_off @ pair.T_pc_sensor,
                               T_cam_pc=pair.T_cam_pc @ cameras.invert(T_off))
-    c = R.recentre_offset(far.points)
-    assert c is not None and R.recentre_offset(pair.points) is None  # a cloud near its origin is left alone
+    assert R.recentre_offset(far.points) is not None and R.recentre_offset(pair.points) is None  # near: left alone
+    c = np.round(far.T_pc_sensor[:3, 3])  # a cloud with its depth camera is re-centred on that sensor
     c_near = c - offset  # the same whole metres, seen from the near cloud
     near = dataclasses.replace(pair, points=pair.points - c_near, T_pc_sensor=R.shift_frame(pair.T_pc_sensor, c_near),
                                T_cam_pc=R.shift_pose(pair.T_cam_pc, c_near))

@@ -116,8 +116,9 @@ def _parser() -> argparse.ArgumentParser:
 # The dataset settings of config_for that a user's pair can take (README, "Your own data").
 SETTINGS = ("demo", "3dmatch", "scannet", "kitti")
 
-# A user's cloud is rendered with its depth-camera coordinates rounded to 1 um (cfg.cloud_snap_m;
-# --demo and the library default: 0, the official): a depth PNG's cloud ties exactly on pixel and
+# A user's cloud with its sensor pose (--depth-pose) is rendered from that sensor with its
+# coordinates rounded to 1 um (cfg.cloud_snap_m; --demo, virtual cameras and the library default:
+# 0, the official): a depth PNG's cloud seen from its own sensor ties exactly on pixel and
 # millimetre edges, and the ~1e-9 m a float64 cloud keeps 5,000 km away tipped them another way.
 USER_CLOUD_SNAP_M = 1e-6
 
@@ -312,10 +313,11 @@ def register_command(args) -> int:
         extra = {"weights_dir": args.weights_dir} if args.weights_dir else {}
         if args.fcgf_checkpoint:
             extra["fcgf_checkpoint"] = args.fcgf_checkpoint
+        snap = USER_CLOUD_SNAP_M if pair.meta["depth_camera"] and not (args.demo or args.virtual) else 0.0
         try:
             cfg = config_for(name, seed=args.seed, ransac_iters=args.ransac_iters,
                              kabsch_scoring=args.kabsch_scoring, geometric=args.geometric, extra=extra,
-                             cloud_snap_m=0.0 if args.demo else USER_CLOUD_SNAP_M)
+                             cloud_snap_m=snap)
         except (ValueError, TypeError) as exc:
             return _fail(in_flags(UI._one_line(exc)))
     except R.InputError as exc:

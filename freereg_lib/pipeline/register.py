@@ -314,6 +314,8 @@ def _recentred(pair: Pair, rough_T_pc_cam, depth_cameras, say):
     and the pose restored after: a numerical safeguard (PnP loses degrees at 5,000 km). Returns
     ``(pair, rough_T_pc_cam, depth_cameras, offset)``, shifted when ``offset`` is not ``None``."""
     offset = recentre_offset(pair.points)
+    if offset is not None and depth_cameras is None and pair.meta.get("depth_camera", True):
+        offset = np.round(pair.T_pc_sensor[:3, 3])  # on its sensor: a cloud in its sensor's frame solves as at 0
     if offset is None:
         return pair, rough_T_pc_cam, depth_cameras, None
     say(f"the cloud lies {np.linalg.norm(offset):.4g} m from its frame's origin: solving in coordinates "

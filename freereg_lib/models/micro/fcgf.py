@@ -32,7 +32,6 @@ def build(seed: int = 0):
     """A ResUNetBN2C at the paper's 3DMatch settings with seeded random weights (train mode)."""
     import torch
 
-
     torch.manual_seed(seed)
     return ResUNetBN2C(in_channels=1, out_channels=32, conv1_kernel_size=CONV1_KERNEL)
 
@@ -41,7 +40,6 @@ def save(net, folder: str | Path, facts: dict | None = None) -> Path:
     """The state dict as float16 safetensors (BatchNorm counters stay integers), its
     ``config.json`` and, given ``facts``, ``training.json``."""
     from safetensors.torch import save_file
-
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
