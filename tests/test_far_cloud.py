@@ -5,10 +5,9 @@ A depth PNG's cloud seen from its own sensor ties exactly: its points project on
 round trip truncates. A float64 cloud written 5e6 m away keeps its points only to ~1e-9 m, and
 that tipped those ties another way: 1,498 pixels of the densified depth view differed from the
 origin's (ICL 60-70), and so did the pose (Kabsch RE 2.88 against 1.11 deg; issue 62 reported a
-registered pose at the origin and RE 11.8 deg at 5e6 m). ``cfg.cloud_snap_m`` rounds the
-depth-camera coordinates to a grid first (0, the official projection, is the default);
-``freereg register`` sets it to 1 um for a user's cloud. A float32 cloud that far keeps only
-0.5 m steps and is refused in one line.
+registered pose at the origin and RE 11.8 deg at 5e6 m). ``cfg.cloud_snap_m`` (``freereg register
+--cloud-snap``) rounds the depth-camera coordinates to a grid first (0, the official projection,
+is the default). A float32 cloud that far keeps only 0.5 m steps and is refused in one line.
 """
 from __future__ import annotations
 
@@ -88,7 +87,7 @@ def _files(pair, folder, offset, dtype):
     return [str(folder / "image.png"), str(cloud), "--K", *(f"{v:.9f}" for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2])),
             "--depth-pose", str(folder / "pose.txt"), "--gt-T-pc-cam", str(folder / "gt.txt"),
             "--image-depth", str(folder / "depth.png"), "--stub-true-depth", "--backend", "stub",
-            "--ransac-iters", "2000", "--solver", "kabsch", "--out", str(folder / "out")]
+            "--ransac-iters", "2000", "--solver", "kabsch", "--cloud-snap", "1e-6", "--out", str(folder / "out")]
 
 
 def test_register_a_float64_ply_5e6_m_away_as_at_the_origin_and_refuse_a_float32_one(sensor_pair, tmp_path,
@@ -106,3 +105,11 @@ def test_register_a_float64_ply_5e6_m_away_as_at_the_origin_and_refuse_a_float32
     assert cli.main(["register", *_files(sensor_pair, tmp_path / "far32", OFFSET, np.float32)]) == 2
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert len(err) == 1 and "stored in float32" in err[0] and "steps of 0.5 m" in err[0] and "cloud_float32" in err[0]
+
+
+def test_a_negative_cloud_snap_is_refused_in_one_line(sensor_pair, tmp_path, capsys):
+    argv = _files(sensor_pair, tmp_path, np.zeros(3), np.float64)
+    argv[argv.index("--cloud-snap") + 1] = "-1"
+    assert cli.main(["register", *argv]) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert err == ["freereg register: error: --cloud-snap must be a number >= 0 (metres; 0: none), got -1.0"]

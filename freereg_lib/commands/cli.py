@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import math
 import re
 import sys
 from pathlib import Path
@@ -100,6 +101,9 @@ def _parser() -> argparse.ArgumentParser:
     m.add_argument("--seed", type=int, default=0)
     d = r.add_argument_group("data")
     d.add_argument("--cloud-scale", type=float, default=1.0, help="multiply the cloud by this (0.001: mm -> m)")
+    d.add_argument("--cloud-snap", type=float, default=0.0, metavar="M",
+                   help="round the cloud's coordinates in its depth camera's frame to M metres before rendering it "
+                        "(0: the official projection; 1e-6: a far cloud, e.g. UTM, gets the pose it gets at its origin)")
     d.add_argument("--gt-T-cam-pc", metavar="FILE", help="ground truth, cloud -> camera (4 x 4 text)")
     d.add_argument("--gt-T-pc-cam", metavar="FILE", help="ground truth, the camera's pose in the cloud's frame "
                    "(the official demo's rgb2pc.gt.pose.txt)")
@@ -115,12 +119,6 @@ def _parser() -> argparse.ArgumentParser:
 
 # The dataset settings of config_for that a user's pair can take (README, "Your own data").
 SETTINGS = ("demo", "3dmatch", "scannet", "kitti")
-
-# A user's cloud with its sensor pose (--depth-pose) is rendered from that sensor with its
-# coordinates rounded to 1 um (cfg.cloud_snap_m; --demo, virtual cameras and the library default:
-# 0, the official): a depth PNG's cloud seen from its own sensor ties exactly on pixel and
-# millimetre edges, and the ~1e-9 m a float64 cloud keeps 5,000 km away tipped them another way.
-USER_CLOUD_SNAP_M = 1e-6
 
 
 # A cloud whose projection fills this share of its footprint's pixels is used as a depth map as it
@@ -313,11 +311,12 @@ def register_command(args) -> int:
         extra = {"weights_dir": args.weights_dir} if args.weights_dir else {}
         if args.fcgf_checkpoint:
             extra["fcgf_checkpoint"] = args.fcgf_checkpoint
-        snap = USER_CLOUD_SNAP_M if pair.meta["depth_camera"] and not (args.demo or args.virtual) else 0.0
+        if not (math.isfinite(args.cloud_snap) and args.cloud_snap >= 0):
+            return _fail(f"--cloud-snap must be a number >= 0 (metres; 0: none), got {args.cloud_snap}")
         try:
             cfg = config_for(name, seed=args.seed, ransac_iters=args.ransac_iters,
                              kabsch_scoring=args.kabsch_scoring, geometric=args.geometric, extra=extra,
-                             cloud_snap_m=snap)
+                             cloud_snap_m=args.cloud_snap)
         except (ValueError, TypeError) as exc:
             return _fail(in_flags(UI._one_line(exc)))
     except R.InputError as exc:
