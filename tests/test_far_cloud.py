@@ -1,10 +1,10 @@
-"""A cloud 5,000 km from its origin gets the pose it gets at the origin (issue 62).
+"""A cloud 5,000 km from its origin gets the pose it gets at the origin.
 
 A depth PNG's cloud seen from its own sensor ties exactly: its points project onto pixel edges
 (column and row 0 at 0 +- 1e-13) and its depths sit on whole millimetres, which the dense PNG's
 round trip truncates. A float64 cloud written 5e6 m away keeps its points only to ~1e-9 m, and
 that tipped those ties another way: 1,498 pixels of the densified depth view differed from the
-origin's (ICL 60-70), and so did the pose (Kabsch RE 2.88 against 1.11 deg; issue 62 reported a
+origin's (ICL 60-70), and so did the pose (Kabsch RE 2.88 against 1.11 deg; a report had a
 registered pose at the origin and RE 11.8 deg at 5e6 m). ``cfg.cloud_snap_m`` (``freereg register
 --cloud-snap``) rounds the depth-camera coordinates to a grid first (0, the official projection,
 is the default). A float32 cloud that far keeps only 0.5 m steps and is refused in one line.

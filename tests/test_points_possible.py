@@ -1,4 +1,4 @@
-"""grades.csv's maxima (issue 63): ``points_possible.csv`` holds grades.csv's header and one
+"""grades.csv's maxima: ``points_possible.csv`` holds grades.csv's header and one
 ``Points Possible`` row; grades.csv stays one row per student (Moodle's import and pandas read
 every row of it as a student); canvas.csv keeps its own row. Formula-like cells stay escaped."""
 from __future__ import annotations

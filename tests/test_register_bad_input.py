@@ -262,7 +262,7 @@ def test_a_cloud_far_from_its_origin_gets_the_pose_it_gets_near_it():
 
 
 # --------------------------------------------------------------------------------------
-# A depth PNG with scattered 65535 pixels (a sensor's "no reading"; issue 63).
+# A depth PNG with scattered 65535 pixels (a sensor's "no reading").
 
 def test_scattered_65535_depth_pixels_are_read_as_no_depth_with_a_note(files, tmp_path):
     # As the official code, whose depth masks ((0.01, 10) m indoors) drop the 65.535 m they
