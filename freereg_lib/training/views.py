@@ -62,7 +62,7 @@ def _scene_views(args) -> dict[str, np.ndarray]:
 
     if kind not in WORLD_KINDS:
         raise ValueError(f"training views exist for the indoor worlds only {WORLD_KINDS}, got kind={kind!r}")
-    scene_of, camera_of = (_indoor_scene, _indoor_camera) if kind == "indoor" else (rooms.room_scene, rooms.scan_camera)
+    scene_of, camera_of = (_indoor_scene, _indoor_camera) if kind == "indoor" else (rooms._room_scene, rooms._scan_camera)
     cfg = FreeRegConfig()
     rng = room_rng(k)
     art = sense.rng(k) if sense is not None else None

@@ -24,7 +24,7 @@ TUM_ROOT = Path(__file__).resolve().parent.parent / "tum_fr1_rpy"
 
 class ICLSample:
     """Reader of the ICL folder (colour/, depth/, trajectory.log, intrinsics.json), or of any folder in
-    its layout (:data:`TUM_ROOT`); a ``trajectory_depth.log`` beside it gives the depth frames' own
+    its layout (``TUM_ROOT``); a ``trajectory_depth.log`` beside it gives the depth frames' own
     poses (a sensor that takes depth and colour at different instants)."""
 
     def __init__(self, root: str | Path = ICL_ROOT):

@@ -141,7 +141,7 @@ def make_pair(
     if kind == "indoor":
         redraw = None if appearance_seed is None else np.random.default_rng(appearance_seed)
         scene_of, camera_of, sensor_of = (_indoor_scene, _indoor_camera, _indoor_sensor) if world == "blocks" else (
-            rooms.room_scene, rooms.scan_camera, rooms.scan_sensor)
+            rooms._room_scene, rooms._scan_camera, rooms._scan_sensor)
         scene, room = scene_of(rng, _Looks(rng, redraw))
         sample_camera = functools.partial(camera_of, room=room)
         sample_sensor = functools.partial(sensor_of, room=room)

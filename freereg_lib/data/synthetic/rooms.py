@@ -8,7 +8,7 @@ and backs, open shelves full of books, tables and dressers carrying cups, bottle
 sofas and beds with cushions and pillows, plants of many leaves, curtains in folds, radiators,
 pictures and skirting on the walls; the camera looks at the furniture from 1-3 m, and the depth
 sensor is a later frame of the same hand-held scan (a small turn and step from the camera).
-Every part stands upright (:class:`~.render._Part`); ellipsoids are scaled spheres.
+Every part stands upright (as in the blocks world); ellipsoids are scaled spheres.
 """
 from __future__ import annotations
 
@@ -212,7 +212,7 @@ def _wall_decor(rng, looks, Lx, Ly, Hr) -> list:
     return parts
 
 
-def room_scene(rng: np.random.Generator, looks: _Looks | None = None) -> tuple[_Scene, _Room]:
+def _room_scene(rng: np.random.Generator, looks: _Looks | None = None) -> tuple[_Scene, _Room]:
     """A furnished, cluttered room drawn from ``rng`` (colours and textures from ``looks``)."""
     looks = _Looks(rng) if looks is None else looks
     Lx, Ly, Hr = rng.uniform(3.5, 5.5), rng.uniform(3.0, 4.5), rng.uniform(2.4, 2.8)
@@ -259,18 +259,18 @@ def room_scene(rng: np.random.Generator, looks: _Looks | None = None) -> tuple[_
         Rz = rotation_about([0.0, 0.0, 1.0], float(yaw[k]))
         origin = np.array([xy[k, 0], xy[k, 1], 0.0])
         for shape, centre, size, colour, tex, scale, contrast, axis, cls in local:
-            parts.append(_part(looks, shape, origin + Rz @ np.asarray(centre, float), size, cls or kind_class(kind), colour,
+            parts.append(_part(looks, shape, origin + Rz @ np.asarray(centre, float), size, cls or _kind_class(kind), colour,
                                tex, scale, contrast, yaw=float(yaw[k]), tex_axis=axis))
     lamp = np.array([rng.uniform(0.3, 0.7) * Lx, rng.uniform(0.3, 0.7) * Ly, Hr - 0.05])
     return _Scene(parts, lamp=lamp, lamp_range=3.5, ambient=0.25, key=1.1), _Room(np.array([Lx, Ly, Hr]), np.asarray(circles))
 
 
-def kind_class(kind: str) -> str:
+def _kind_class(kind: str) -> str:
     """The class of a piece of furniture (``CLASS_NAMES``)."""
     return {"armchair": "sofa", "dresser": "cabinet", "desk": "table", "tv_stand": "cabinet"}.get(kind, kind)
 
 
-def scan_camera(rng: np.random.Generator, room: _Room) -> np.ndarray:
+def _scan_camera(rng: np.random.Generator, room: _Room) -> np.ndarray:
     """``T_world_cam`` of a hand-held scan: 1.1-1.7 m high, in free space, looking at a piece of
     furniture 1-3 m away."""
     Lx, Ly, _ = room.size
@@ -283,7 +283,7 @@ def scan_camera(rng: np.random.Generator, room: _Room) -> np.ndarray:
     raise RuntimeError("synthetic rooms: the room is too crowded for a camera")
 
 
-def scan_sensor(rng: np.random.Generator, T_world_cam: np.ndarray, room: _Room) -> np.ndarray:
+def _scan_sensor(rng: np.random.Generator, T_world_cam: np.ndarray, room: _Room) -> np.ndarray:
     """The depth sensor as a later frame of the same scan: the camera turned (yaw 12 deg, pitch
     4 deg, standard deviations) and stepped (0.2 m per axis)."""
     Lx, Ly, Hr = room.size
