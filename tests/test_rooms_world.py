@@ -81,8 +81,9 @@ def test_texture_stats_of_a_flat_and_a_striped_image():
 
 
 def test_summaries_and_table_name_every_statistic():
-    rows = [{key: float(k) for key, _, _ in ws.SUMMARY} for k in range(4)]
+    rows = [{**{key: float(k) for key, _, _ in ws.SUMMARY}, "depth_shares": [1.0, 0, 0, 0, 0, 0]} for k in range(4)]
     s = ws.summarize(rows)
     assert s["n_pairs"] == 4 and s["overlap"]["mean"] == pytest.approx(150.0)
     text = ws.table({"a": s, "b": s})
     assert all(label in text for _, label, _ in ws.SUMMARY) and "a (4 pairs)" in text
+    assert "| depth shares, 0-1 / 1-2 / 2-3 / 3-4 / 4-5 / 5+ m (%) | 100 / 0 / 0 / 0 / 0 / 0 |" in text

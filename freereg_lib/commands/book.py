@@ -162,7 +162,7 @@ BACKEND_NOTES = {
 EXTRA_PAGES = ("benchmarks/README.md", "assignments/README.md", "freereg_lib/models/micro/weights/MODEL_CARD.md",
                "freereg_lib/models/micro/weights/depth/MODEL_CARD.md")
 # The reading order of docs/; a page not named here follows, by name.
-DOC_ORDER = ("backends", "micro_models", "reproducibility", "real_data", "your_data", "real_frames", "fidelity", "performance",
+DOC_ORDER = ("backends", "micro_models", "world", "reproducibility", "real_data", "your_data", "real_frames", "fidelity", "performance",
              "troubleshooting", "teaching", "contributing", "changelog")
 
 # The API reference: the method layers by topic (tools beside the method are not in it).

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -135,6 +136,7 @@ def summarize(rows: list[dict], seed: int = 0) -> dict:
         v = np.asarray([float(r[key]) for r in rows]) * scale
         lo, hi = bootstrap_ci(v, seed=seed)
         out[key] = {"mean": float(v.mean()), "ci95": [float(lo), float(hi)], "median": float(np.median(v))}
+    out["depth_shares"] = [float(x) for x in 100 * np.mean([r["depth_shares"] for r in rows], axis=0)]
     out["n_pairs"] = len(rows)
     return out
 
@@ -148,6 +150,10 @@ def table(summaries: dict[str, dict]) -> str:
         cells = [f"{s[key]['mean']:.1f} [{s[key]['ci95'][0]:.1f}, {s[key]['ci95'][1]:.1f}] ({s[key]['median']:.1f})"
                  for s in (summaries[n] for n in names)]
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    edges = [f"{int(b)}" for b in DEPTH_BINS_M[:-1]]
+    bins = " / ".join(f"{a}-{b}" for a, b in zip(edges, edges[1:])) + f" / {edges[-1]}+"
+    lines.append(f"| depth shares, {bins} m (%) | "
+                 + " | ".join(" / ".join(f"{x:.0f}" for x in summaries[n]["depth_shares"]) for n in names) + " |")
     return "\n".join(lines)
 
 
@@ -187,7 +193,11 @@ def main(argv=None) -> None:
     p.add_argument("--seed", type=int, default=5150, help="pair seeds seed * 1_000_003 + k")
     p.add_argument("--no-real", action="store_true", help="skip the shipped real frames (ICL-NUIM, TUM fr1)")
     p.add_argument("--out", type=Path, default=None, help="JSON with every row and summary")
+    p.add_argument("--table", type=Path, default=None, metavar="JSON", help="print the table of a written JSON and stop")
     a = p.parse_args(argv)
+    if a.table:
+        print(table(json.loads(a.table.read_text())["summaries"]))
+        return
     rows: dict[str, list[dict]] = {}
     for world in a.world or ["rooms"]:
         seeds = [a.seed * 1_000_003 + k for k in range(a.pairs)]
@@ -199,7 +209,7 @@ def main(argv=None) -> None:
     print(table(summaries))
     if a.out:
         a.out.parent.mkdir(parents=True, exist_ok=True)
-        a.out.write_text(json.dumps({"command": "python -m freereg_lib.training.world_stats " + " ".join(argv or []),
+        a.out.write_text(json.dumps({"command": "python -m freereg_lib.training.world_stats " + " ".join(sys.argv[1:] if argv is None else argv),
                                      "seed": a.seed, "summaries": summaries, "rows": rows,
                                      "provenance": machine_record()}, indent=1) + "\n")
         print(f"wrote {a.out}")
