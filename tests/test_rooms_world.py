@@ -87,3 +87,24 @@ def test_summaries_and_table_name_every_statistic():
     text = ws.table({"a": s, "b": s})
     assert all(label in text for _, label, _ in ws.SUMMARY) and "a (4 pairs)" in text
     assert "| depth shares, 0-1 / 1-2 / 2-3 / 3-4 / 4-5 / 5+ m (%) | 100 / 0 / 0 / 0 / 0 / 0 |" in text
+
+
+def test_the_rooms_splits_draw_rooms_pairs_and_the_old_splits_blocks_pairs(tmp_path, monkeypatch):
+    import json
+
+    from freereg_lib import pipeline
+    from freereg_lib.training import evaluate_split
+    from freereg_lib.training.splits import DEV, ROOMS_DEV, ROOMS_TEST, SPLITS, TEST
+
+    assert (DEV.world, TEST.world, ROOMS_DEV.world, ROOMS_TEST.world) == ("blocks", "blocks", "rooms", "rooms")
+    assert SPLITS["rooms-test"] is ROOMS_TEST and ROOMS_TEST.seed not in (DEV.seed, TEST.seed, ROOMS_DEV.seed)
+
+    def no_features(*args, **kwargs):  # the pair is what is under test, not the models
+        raise RuntimeError("features skipped")
+
+    monkeypatch.setattr(pipeline, "compute_features", no_features)
+    for name, world in (("rooms-dev", "rooms"), ("dev", "indoor")):
+        rows = tmp_path / f"{name}.jsonl"
+        evaluate_split.run(name, 1, rows, progress=False)
+        (rec,) = [json.loads(line) for line in rows.read_text().splitlines()]
+        assert rec["pair"] == f"synthetic-{world}/seed{SPLITS[name].seed * 1_000_003}"

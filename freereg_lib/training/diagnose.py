@@ -96,7 +96,7 @@ def recoloured(pair):
 
     seed = _synthetic_indoor_seed(pair)
     return synthetic.make_pair("indoor", seed=seed, overlap=pair.meta["overlap_range"], image_size=pair.image_size,
-                               appearance_seed=appearance_seed(seed))
+                               appearance_seed=appearance_seed(seed), world=pair.meta.get("world", "blocks"))
 
 
 def depth_side_maps(pair, view, frame_view, backend, layers, maps=None) -> tuple[dict, dict[str, dict]]:

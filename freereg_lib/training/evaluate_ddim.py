@@ -71,7 +71,7 @@ def run(split_name: str, n_pairs: int, rows_path: Path, steps=STEPS, progress: b
     rows_path.parent.mkdir(parents=True, exist_ok=True)
     for k in tqdm([k for k in range(n_pairs) if k not in done], desc=f"{split.name} split", disable=not progress):
         seed = split.pair_seeds(k + 1)[k]
-        pair = synthetic.make_pair("indoor", seed=seed)
+        pair = synthetic.make_pair("indoor", seed=seed, world=split.world)
         rec = {"k": k, "pair_seed": seed, "pair": pair.name, "label": backends[max(backends)].label,
                "load_average": round(os.getloadavg()[0], 2), **pair_record(pair, backends, cfg)}
         with open(rows_path, "a") as fh:

@@ -92,7 +92,7 @@ def run(split_name: str, n_pairs: int, rows_path: Path, model: str, weights: str
     for k in tqdm(todo, desc=f"{model}, {split.name} split",
                   disable=not progress):
         seed = split.pair_seeds(k + 1)[k]
-        pair = synthetic.make_pair("indoor", seed=seed)
+        pair = synthetic.make_pair("indoor", seed=seed, world=split.world)
         rec = {"k": k, "model": model, "pair_seed": seed, "pair": pair.name, "label": backend.label,
                "weights": str(backend.weights_dir), "depth_weights": str(backend.depth_weights_dir),
                "load_average": round(os.getloadavg()[0], 2), **pair_record(pair, backend, cfg)}

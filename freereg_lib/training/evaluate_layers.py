@@ -67,7 +67,7 @@ def run(split_name: str, n_pairs: int, rows_path: Path, shard: str = "0/1") -> N
     for k in tqdm([k for k in range(n_pairs) if k % n == i and k not in done], desc=f"Table 2, {split.name}"):
         seed = split.pair_seeds(k + 1)[k]
         t0 = time.time()
-        pair = synthetic.make_pair("indoor", seed=seed)
+        pair = synthetic.make_pair("indoor", seed=seed, world=split.world)
         rec = {"k": k, "pair_seed": seed, "pair": pair.name, "label": backend.label,
                "rows": pair_rows(pair, backend, cfg), "seconds": 0.0}
         rec["seconds"] = round(time.time() - t0, 1)

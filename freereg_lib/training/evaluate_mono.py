@@ -212,7 +212,7 @@ def run(split_name: str, n_pairs: int, rows_path: Path, backend_name: str = "mic
         seed = split.pair_seeds(k + 1)[k]
         synthetic.check_eval_seed(seed)
         t0 = time.perf_counter()
-        pair = synthetic.make_pair("indoor", seed=seed, depth_camera_image=True)
+        pair = synthetic.make_pair("indoor", seed=seed, depth_camera_image=True, world=split.world)
         rows, sec = pair_rows(pair, backend, cfg)
         rec = {"k": k, "pair_seed": seed, "pair": pair.name, "label": backend.label, "config_changes": changes,
                "load_average": round(os.getloadavg()[0], 2), "seconds": round(time.perf_counter() - t0, 1),

@@ -150,7 +150,7 @@ def run(split_name: str, n_pairs: int, rows_path: Path, progress: bool = True) -
         seed = split.pair_seeds(k + 1)[k]
         synthetic.check_eval_seed(seed)
         t0 = time.perf_counter()
-        pair = synthetic.make_pair("indoor", seed=seed)
+        pair = synthetic.make_pair("indoor", seed=seed, world=split.world)
         try:
             rows = pair_rows(pair, pipeline.compute_features(pair, backend, cfg, True, True), cfg)
         except Exception as exc:  # recorded, so the batch goes on and the pair counts as a failure

@@ -85,7 +85,7 @@ def run(split_name: str, n_pairs: int, rows_path: Path, shard: str = "0/1", weig
         seed = split.pair_seeds(k + 1)[k]
         synthetic.check_eval_seed(seed)
         t0 = time.time()
-        pair = synthetic.make_pair("indoor", seed=seed)
+        pair = synthetic.make_pair("indoor", seed=seed, world=split.world)
         try:
             feats = pipeline.compute_features(pair, backend, cfg, True, True)
             if cache is not None:

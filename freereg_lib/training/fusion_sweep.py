@@ -78,7 +78,7 @@ def sweep(split_name: str, cache: Path, ws: list[float], solvers: list[str], n_p
                          " (evaluate_split --cache)")
     ws = sorted(set(ws) | {0.0, 1.0}, reverse=True)
     per = {(w, s): {"IR": [], "reg": []} for w in ws for s in solvers}
-    pairs_feats = [(synthetic.make_pair("indoor", seed=split.pair_seeds(k + 1)[k]),
+    pairs_feats = [(synthetic.make_pair("indoor", seed=split.pair_seeds(k + 1)[k], world=split.world),
                     load_features(Path(cache) / f"{k}.npz")) for k in range(n)]
     fpfh_choice = None
     if fpfh:

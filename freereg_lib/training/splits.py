@@ -10,6 +10,9 @@
   it is evaluated once per committed model (:mod:`.evaluate_split`) and never for a choice;
   choices are made on :data:`DEV`.
 
+:data:`ROOMS_DEV` and :data:`ROOMS_TEST` are the same for the calibrated ``rooms`` world (seeds 5150
+and 8837), for models trained in it.
+
 Every method of a split runs on the same pairs with the same noise seed (the config's ``seed``:
 the diffusion features' noise draws and the RANSAC draws), whatever the pair seed.
 Neither split's seeds reproduce a training room: :func:`freereg_lib.data.synthetic.check_eval_seed`.
@@ -28,6 +31,7 @@ class Split:
     n_pairs: int
     noise_seed: int  # the config's seed for every method
     use: str
+    world: str = "blocks"  # the synthetic indoor world of its pairs (make_pair's ``world``)
 
     def pair_seeds(self, n_pairs: int | None = None) -> list[int]:
         n = self.n_pairs if n_pairs is None else n_pairs
@@ -46,8 +50,13 @@ def guard_eval_seed(seed: int, n_pairs: int) -> None:
             raise SystemExit(f"--seed {seed}, pair {k}: {exc}") from None
 
 
-SPLITS = {"dev": DEV, "development": DEV, "test": TEST}
+# The calibrated world's own splits (docs/world.md): its development seed 5150 is one the world itself
+# was built on; its test seed range is used by no other run.
+ROOMS_DEV = Split("rooms development", 5150, 30, 0, "choices of models trained in the rooms world", "rooms")
+ROOMS_TEST = Split("rooms test", 8837, 100, 0, "test-only: evaluated once per model trained in the rooms world, "
+                   "never for a choice", "rooms")
+SPLITS = {"dev": DEV, "development": DEV, "test": TEST, "rooms-dev": ROOMS_DEV, "rooms-test": ROOMS_TEST}
 
-for _split in (DEV, TEST):
+for _split in (DEV, TEST, ROOMS_DEV, ROOMS_TEST):
     for _s in _split.pair_seeds(1000):
         check_eval_seed(_s)
