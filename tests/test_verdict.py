@@ -43,3 +43,33 @@ def test_the_null_is_the_solver_on_the_matches_shuffled():
     assert len(nulls) == verdict.NULL_SHUFFLES["kabsch"] and nulls == verdict.null_inliers(pair, feats, m, cfg, "kabsch")
     assert max(nulls) < res.n_inliers / 3, (nulls, res.n_inliers)
     assert verdict.decide(res, nulls, "kabsch", cfg)[0]
+
+
+def test_another_folder_is_measured_on_its_overlapping_pairs(tmp_path):
+    # ``sample --root``: a folder in the ICL layout (here 2 of the shipped TUM frames), every ordered
+    # pair i != j above the least overlap (i < j first), the JSON with the machine that measured it.
+    import json
+    import shutil
+
+    from freereg_lib.data.datasets.icl import TUM_ROOT, ICLSample
+
+    spec = importlib.util.spec_from_file_location("verdict_holdout", ROOT / "tools" / "verdict_holdout.py")
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    root = tmp_path / "tiny"
+    for sub in ("color", "depth"):
+        (root / sub).mkdir(parents=True)
+        for f in (126, 129):
+            name = f"{f:05d}.{'jpg' if sub == 'color' else 'png'}"
+            shutil.copy(TUM_ROOT / sub / name, root / sub / name)
+    for name in ("intrinsics.json", "trajectory.log", "trajectory_depth.log"):
+        shutil.copy(TUM_ROOT / name, root / name)
+    assert tool.overlapping_pairs(ICLSample(root)) == [(126, 129), (129, 126)]
+    assert tool.overlapping_pairs(ICLSample(root), min_overlap=0.99) == []
+    out = tmp_path / "rows.json"
+    rows = tool.sample_rows(str(out), root, n_pairs=1, iters=300)
+    assert rows["pair"].tolist() == ["tiny/00126-00129"] * 4 and (rows["gap"] == 3).all()
+    assert (rows["setting"] == "3dmatch").all() and rows["null_inliers"].notna().all()
+    doc = json.loads(out.read_text())
+    assert doc["provenance"]["cpu"]["model"] and (doc["pairs_listed"], doc["pairs_chosen"]) == (2, 1)
+    assert tool.sample_rows(str(out), root, n_pairs=1, iters=300).equals(rows)  # a rerun skips what is there

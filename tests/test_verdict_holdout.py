@@ -98,3 +98,24 @@ def test_the_documented_rates_on_synthetic_rooms():
     doc = (ROOT / "docs" / "your_data.md").read_text()
     for line in V.table_lines(rows):
         assert line in doc, line
+
+
+def test_the_documented_rates_on_the_tum_kinect_frames():
+    # Another sensor and room the rule was not fitted on (tools/verdict_holdout.py sample): every
+    # ordered pair of the shipped TUM fr1_rpy frames above 0.3 overlap, with the machine's record.
+    import json
+
+    path = ROOT / "tests" / "fixtures" / "verdict_tum_rows.json"
+    doc_json = json.loads(path.read_text())
+    assert doc_json["provenance"]["cpu"]["model"] and doc_json["min_overlap"] == 0.3
+    assert (doc_json["pairs_listed"], doc_json["pairs_chosen"], doc_json["iters"]) == (130, 130, 50_000)
+    rows = V.read_rows(path)
+    assert rows["pair"].nunique() == 130 and len(rows) == 520 and (rows["setting"] == "3dmatch").all()
+    assert V.frames_of(rows, "tum_fr1_rpy/") == {126, 129, 139, 142, 145, 281, 283, 288, 359, 364, 367, 370}
+    r = V.rates(rows, V.verdicts(rows))
+    assert (r["right"], r["missed_right"], r["wrong"], r["FP"], r["good"], r["FN"]) == (340, 96, 180, 4, 190, 18)
+    assert r["missed_right_ci"] == pytest.approx((0.2351, 0.3334), abs=5e-4)
+    assert r["FP_ci"] == pytest.approx((0.0061, 0.0559), abs=5e-4)
+    doc = (ROOT / "docs" / "your_data.md").read_text()
+    for line in V.target_lines(rows):
+        assert line in doc, line

@@ -19,7 +19,12 @@ each with its 95 % Clopper-Pearson interval::
         --rows tests/fixtures/verdict_icl_report_rows.csv
 
 It prints the rule fitted on ``--fit`` (and whether the command's constants are that rule), then
-the command's verdict counted on ``--rows`` as the table of docs/your_data.md.
+the command's verdict counted on ``--rows`` as the table of docs/your_data.md. ``--rows`` may be
+the ``.json`` of ``tools/verdict_holdout.py sample`` (another sensor's frames, ``--root``);
+``--targets`` adds the acceptance table per solver and depth (:func:`target_lines`)::
+
+    python -m freereg_lib.commands.verdict_measure --fit tests/fixtures/verdict_icl_fit_rows.csv \\
+        --rows tests/fixtures/verdict_tum_rows.json --targets
 """
 from __future__ import annotations
 
@@ -46,9 +51,24 @@ def pairs_within(frames, min_gap: int = GAPS[0], max_gap: int = GAPS[1]) -> list
     return [(i, j) for i in frames for j in frames if min_gap <= j - i <= max_gap]
 
 
-def frames_of(table) -> set[int]:
-    """The ICL frame numbers in the ``pair`` column (``icl/00000-00010``) of ``table``."""
-    return {int(f) for name in table["pair"] if str(name).startswith("icl/") for f in name.split("/")[-1].split("-")}
+TARGETS = {"right_FAILED": 0.10, "wrong_REGISTERED": 0.05}  # the acceptance targets on another sensor
+
+
+def read_rows(path: str):
+    """The rows of a CSV, or of the ``.json`` of ``tools/verdict_holdout.py`` (its ``rows``), as a table."""
+    import json
+
+    import pandas as pd
+
+    if str(path).endswith(".json"):
+        with open(path) as f:
+            return pd.DataFrame(json.load(f)["rows"])
+    return pd.read_csv(path)
+
+
+def frames_of(table, prefix: str = "icl/") -> set[int]:
+    """The frame numbers in the ``pair`` column (``icl/00000-00010``) of ``table`` whose name starts with ``prefix``."""
+    return {int(f) for name in table["pair"] if str(name).startswith(prefix) for f in name.split("/")[-1].split("-")}
 
 
 def _good(table) -> np.ndarray:
@@ -158,7 +178,9 @@ def rates(table, ok: np.ndarray) -> dict:
     return {"rows": len(table), "good": int(good.sum()), "wrong": int(wrong.sum()),
             "FN": fn, "FN_rate": fn / max(int(good.sum()), 1), "FN_ci": clopper_pearson(fn, int(good.sum())),
             "FP": fp, "FP_rate": fp / max(int(wrong.sum()), 1), "FP_ci": clopper_pearson(fp, int(wrong.sum())),
-            "registered": int(ok.sum()), "right": int(right.sum()), "missed_right": int((right & ~ok).sum())}
+            "registered": int(ok.sum()), "right": int(right.sum()), "missed_right": int((right & ~ok).sum()),
+            "missed_right_rate": int((right & ~ok).sum()) / max(int(right.sum()), 1),
+            "missed_right_ci": clopper_pearson(int((right & ~ok).sum()), int(right.sum()))}
 
 
 def _pct(x: float) -> str:
@@ -183,6 +205,30 @@ def table_lines(table, rule: dict | None = None) -> list[str]:
     return lines
 
 
+TARGET_HEADER = ("| | poses | right: within (20 deg, 0.5 m) | FAILED among them (target <= 10 %) "
+                 "| wrong: outside (20 deg, 0.5 m) | REGISTERED among them (target <= 5 %) "
+                 "| within (5 deg, 0.1 m): FAILED among them |\n|---|---|---|---|---|---|---|")
+
+
+def _share(k: int, n: int, ci) -> str:
+    return f"{k} of {n}" + (f" ({_pct(k / n)} %, [{_pct(ci[0])}, {_pct(ci[1])}])" if n else "")
+
+
+def target_lines(table, rule: dict | None = None) -> list[str]:
+    """The acceptance table: per solver and depth (``true``, ``stub``), per solver and all, right poses
+    (the paper's (20 deg, 0.5 m)) FAILED and wrong ones REGISTERED with their 95 % Clopper-Pearson
+    intervals, and the poses within (5 deg, 0.1 m) FAILED."""
+    lines = TARGET_HEADER.split("\n")
+    groups = [(f"{name}, {depth} depth", table[(table["solver"] == s) & (table["depth"] == depth)])
+              for s, name in (("kabsch", "Kabsch"), ("pnp", "PnP")) for depth in ("true", "stub")]
+    groups += [(name, table[table["solver"] == s]) for s, name in (("kabsch", "Kabsch"), ("pnp", "PnP"))]
+    for name, sub in groups + [("all", table)]:
+        r = rates(sub, verdicts(sub, rule))
+        lines.append(f"| {name} | {r['rows']} | {r['right']} | {_share(r['missed_right'], r['right'], r['missed_right_ci'])} "
+                     f"| {r['wrong']} | {_share(r['FP'], r['wrong'], r['FP_ci'])} | {_share(r['FN'], r['good'], r['FN_ci'])} |")
+    return lines
+
+
 def describe(rule: dict) -> str:
     """A rule as one line: per solver its least support and (Kabsch) scale bound."""
     return "; ".join(f"{s}: support >= {rule['min_support'][s]:g} x the shuffled matches' inliers"
@@ -191,20 +237,23 @@ def describe(rule: dict) -> str:
 
 
 def main(argv=None) -> None:
-    import pandas as pd
-
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--fit", required=True, help="the rows to fit the rule on (tools/verdict_holdout.py fit)")
-    p.add_argument("--rows", required=True, help="the rows to count it on (tools/verdict_holdout.py report)")
+    p.add_argument("--rows", required=True, help="the rows to count it on (tools/verdict_holdout.py report|sample)")
+    p.add_argument("--targets", action="store_true", help="also the acceptance table per solver and depth")
     a = p.parse_args(argv)
-    fit, report = pd.read_csv(a.fit), pd.read_csv(a.rows)
+    fit, report = read_rows(a.fit), read_rows(a.rows)
     rule = fit_rule(fit)
-    shared = frames_of(fit) & frames_of(report)
+    where = sorted({str(n).split("/")[0] + "/" for n in report["pair"]})  # the sample(s) of the rows
+    shared = frames_of(fit) & frames_of(report) if where == ["icl/"] else set()
     print(f"fitted on {fit['pair'].nunique()} pairs ({len(fit)} poses) of frames {sorted(frames_of(fit))}: {describe(rule)}")
     print("the command's rule: " + ("the same" if rule == command_rule() else describe(command_rule())))
-    print(f"counted on {report['pair'].nunique()} pairs ({len(report)} poses) of frames {sorted(frames_of(report))}"
+    print(f"counted on {report['pair'].nunique()} pairs ({len(report)} poses) of "
+          + ", ".join(f"{w} frames {sorted(frames_of(report, w))}" for w in where)
           + (f"; frames in both: {sorted(shared)}" if shared else "; no frame in both"))
     print("\n".join(table_lines(report, rule)))
+    if a.targets:
+        print("\n".join(target_lines(report, rule)))
 
 
 if __name__ == "__main__":
