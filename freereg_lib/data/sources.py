@@ -99,7 +99,7 @@ def iter_pairs(
     if name in SYNTHETIC:
 
         kind = name.split("_")[1]
-        world = {"rooms": "rooms"}.get(kind, "blocks")
+        world = "rooms" if kind == "rooms" else "blocks"
         for k in range(index, n_pairs if n_pairs is not None else 10, count):
             pair_seed = seed * 1_000_003 + k
             synthetic.check_eval_seed(pair_seed)  # raised, not recorded: no pair may be a training room

@@ -150,7 +150,7 @@ def _object(rng, looks, kind: str) -> list:
                       _p(_BOX, (0, -0.05, h + 0.1 + 0.3 * sw), (sw, 0.04, 0.6 * sw), (0.05, 0.05, 0.06))]
             if kind == "desk":
                 parts.append(_p(_BOX, (0, 0.12, h + 0.015), (0.42, 0.14, 0.03), (0.2, 0.2, 0.2)))
-        return parts + _tabletop_items(rng, looks, w * 0.9, d * 0.6, h + (0.0 if kind == "dresser" else 0.0))[: 3]
+        return parts + _tabletop_items(rng, looks, w * 0.9, d * 0.6, h)[: 3]
     if kind == "lamp":
         metal = (0.5, 0.5, 0.52)
         return [_p(_CYLINDER, (0, 0, 0.015), (0.3, 0.3, 0.03), metal), _p(_CYLINDER, (0, 0, 0.78), (0.035, 0.035, 1.5), metal),
