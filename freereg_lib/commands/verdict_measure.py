@@ -25,6 +25,10 @@ the ``.json`` of ``tools/verdict_holdout.py sample`` (another sensor's frames, `
 
     python -m freereg_lib.commands.verdict_measure --fit tests/fixtures/verdict_icl_fit_rows.csv \\
         --rows tests/fixtures/verdict_tum_rows.json --targets
+
+``--candidates ROWS ...`` adds other statistics than the support (:data:`STATISTICS`: the inlier
+fraction, the inliers, a binomial p-value against the null's inlier rate, ...), each fitted on
+``--fit`` (and on ``--fit`` plus ``--fit-also``) and counted on each ``ROWS`` (:func:`candidate_lines`).
 """
 from __future__ import annotations
 
@@ -229,6 +233,120 @@ def target_lines(table, rule: dict | None = None) -> list[str]:
     return lines
 
 
+# Other statistics than the support (:func:`candidate_lines`), each of a row's inliers ``k``, matches
+# ``n`` and null (:func:`freereg_lib.pipeline.verdict.null_of`); higher is more support.
+def _col(table, name: str) -> np.ndarray:
+    return table[name].to_numpy(dtype=float)
+
+
+def _null(table) -> np.ndarray:
+    from freereg_lib.pipeline import verdict
+
+    cfg = _config()
+    return np.array([verdict.null_of(nulls_of(c), s, cfg) for c, s in zip(table["null_inliers"], table["solver"])],
+                    dtype=float)
+
+
+def _null_solved_mean(table) -> np.ndarray:
+    """The mean of the shuffles that found a pose (a failed shuffle, 0, is no count), at least the floor."""
+    floor = _null(table.assign(null_inliers=""))
+    solved = [[v for v in nulls_of(c) if v > 0] for c in table["null_inliers"]]
+    return np.maximum(floor, [np.mean(v) if v else 0.0 for v in solved])
+
+
+def _binomial(table) -> np.ndarray:
+    """-log10 P(X >= k), X ~ Binomial(n, null / n): the pose's inliers against the null's inlier rate."""
+    from scipy.stats import binom
+
+    k, n = _col(table, "n_inliers"), np.maximum(_col(table, "n_matches"), 1)
+    p0 = np.clip(_null(table) / n, 1e-9, 1 - 1e-9)
+    return -np.log10(np.maximum(binom.sf(k - 1, n, p0), 1e-300))
+
+
+STATISTICS = {
+    "support k / null": supports,
+    "support k / mean of the solved shuffles": lambda t: _col(t, "n_inliers") / _null_solved_mean(t),
+    "inlier fraction k / n": lambda t: _col(t, "n_inliers") / np.maximum(_col(t, "n_matches"), 1),
+    "inliers k": lambda t: _col(t, "n_inliers"),
+    "binomial -log10 p": _binomial,
+    "excess (k - null) / n": lambda t: (_col(t, "n_inliers") - _null(t)) / np.maximum(_col(t, "n_matches"), 1),
+}
+CRITERIA = ("no wrong pose", "least errors")
+
+
+def _solved(table) -> np.ndarray:
+    """Solved, with (Kabsch) a scale the verdict's bound lets through: the poses a least value decides."""
+    from freereg_lib.pipeline import verdict
+
+    scale = _col(table, "scale")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        plausible = np.maximum(scale, 1 / scale) <= verdict.MAX_SCALE
+    return table["success"].astype(bool).to_numpy() & (plausible | (table["solver"] != "kabsch").to_numpy())
+
+
+def fit_statistic(table, stat: str, criterion: str = "no wrong pose") -> dict:
+    """Per solver the least value of ``STATISTICS[stat]`` a REGISTERED pose needs, fitted on ``table``:
+    ``"no wrong pose"``: just above every solved wrong pose (outside :data:`WRONG`) of ``table``, as
+    :func:`fit_rule` without its grid; ``"least errors"``: the value with the least sum of the two
+    rates, right poses FAILED and wrong poses REGISTERED."""
+    v, ok, right = STATISTICS[stat](table), _solved(table), ~_wrong(table)
+    out = {}
+    for solver in SOLVERS:
+        mine = (table["solver"] == solver).to_numpy()
+        good, bad = mine & right, mine & ~right
+        if criterion == "no wrong pose":
+            out[solver] = float(np.nextafter(v[bad & ok].max(), np.inf)) if (bad & ok).any() else -np.inf
+            continue
+
+        def errors(c):
+            reg = ok & (v >= c)
+            return (good & ~reg).sum() / max(good.sum(), 1) + (bad & reg).sum() / max(bad.sum(), 1)
+
+        out[solver] = float(min(np.unique(v[mine]), key=errors))
+    return out
+
+
+def statistic_verdicts(table, stat: str, least: dict) -> np.ndarray:
+    """REGISTERED: solved, (Kabsch) of a plausible scale, and ``STATISTICS[stat]`` at least ``least[solver]``."""
+    need = np.array([least[s] for s in table["solver"]], dtype=float)
+    return _solved(table) & (STATISTICS[stat](table) >= need)
+
+
+def candidate_lines(fit, tables: dict, extra: dict | None = None) -> list[str]:
+    """The candidates table of docs/your_data.md: the command's rule, then each statistic of
+    :data:`STATISTICS` fitted by each criterion of :data:`CRITERIA` on ``fit`` (and by the first on
+    ``fit`` plus each of ``extra``, ``{name: rows}``), with the right poses FAILED and the wrong ones
+    REGISTERED (the paper's (20 deg, 0.5 m); 95 % Clopper-Pearson) on each of ``tables`` (``{name: rows}``)."""
+    import pandas as pd
+
+    lines = ["| statistic | fitted on | least (Kabsch; PnP) |"
+             + "".join(f" {n}: right FAILED | {n}: wrong REGISTERED |" for n in tables),
+             "|" + "---|" * (3 + 2 * len(tables))]
+
+    def line(name, on, least, ok_of):
+        cells = []
+        for sub in tables.values():
+            r = rates(sub, ok_of(sub))
+            cells += [_share(r["missed_right"], r["right"], r["missed_right_ci"]),
+                      _share(r["FP"], r["wrong"], r["FP_ci"])]
+        lines.append(f"| {name} | {on} | {least} | " + " | ".join(cells) + " |")
+
+    rule = command_rule()
+    line("the command: support k / null, on a grid of 0.25", "fit",
+         "; ".join(f"{rule['min_support'][s]:g}" for s in SOLVERS), lambda sub: verdicts(sub, rule))
+    sets = {"fit": fit, **{f"fit + {n}": pd.concat([fit, t], ignore_index=True) for n, t in (extra or {}).items()}}
+    for on, rows in sets.items():
+        for criterion in CRITERIA if on == "fit" else CRITERIA[:1]:
+            strict = criterion == "no wrong pose"  # shown as "> the strongest wrong pose"
+            for stat in STATISTICS:
+                least = fit_statistic(rows, stat, criterion)
+                shown = "; ".join(f"> {np.nextafter(least[s], -np.inf):.3g}" if strict else f">= {least[s]:.3g}"
+                                  for s in SOLVERS)
+                line(f"{stat} ({criterion})", on, shown,
+                     lambda sub, stat=stat, least=least: statistic_verdicts(sub, stat, least))
+    return lines
+
+
 def describe(rule: dict) -> str:
     """A rule as one line: per solver its least support and (Kabsch) scale bound."""
     return "; ".join(f"{s}: support >= {rule['min_support'][s]:g} x the shuffled matches' inliers"
@@ -241,6 +359,10 @@ def main(argv=None) -> None:
     p.add_argument("--fit", required=True, help="the rows to fit the rule on (tools/verdict_holdout.py fit)")
     p.add_argument("--rows", required=True, help="the rows to count it on (tools/verdict_holdout.py report|sample)")
     p.add_argument("--targets", action="store_true", help="also the acceptance table per solver and depth")
+    p.add_argument("--candidates", nargs="+", metavar="ROWS",
+                   help="also the other statistics (STATISTICS), fitted on --fit, counted on each ROWS")
+    p.add_argument("--fit-also", nargs="*", default=(), metavar="ROWS",
+                   help="with --candidates: also fit each statistic on --fit plus these rows")
     a = p.parse_args(argv)
     fit, report = read_rows(a.fit), read_rows(a.rows)
     rule = fit_rule(fit)
@@ -254,6 +376,12 @@ def main(argv=None) -> None:
     print("\n".join(table_lines(report, rule)))
     if a.targets:
         print("\n".join(target_lines(report, rule)))
+    if a.candidates:
+        short = {"icl_report": "ICL report", "icl_fit": "ICL fit", "tum": "TUM"}
+        name = lambda path: (lambda n: short.get(n, n))(
+            str(path).replace("\\", "/").split("/")[-1].split(".")[0].removeprefix("verdict_").removesuffix("_rows"))
+        print("\n".join(candidate_lines(fit, {name(c): read_rows(c) for c in a.candidates},
+                                        {name(c): read_rows(c) for c in a.fit_also})))
 
 
 if __name__ == "__main__":
