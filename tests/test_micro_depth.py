@@ -32,7 +32,7 @@ def _views(n=5, seed=0):
 
 
 def _args(tmp, steps, **kw):
-    a = dict(steps=steps, batch=4, lr=2e-3, warmup=1, l1_weight=1.0, seed=0, checkpoint_every=2)
+    a = dict(steps=steps, batch=4, lr=2e-3, warmup=1, l1_weight=1.0, grad_weight=0.0, seed=0, checkpoint_every=2)
     a.update(kw)
     return argparse.Namespace(**a)
 
@@ -55,6 +55,22 @@ def test_resize_matrices_are_the_estimator_post_processing():
     full = F.interpolate(d[:, None], size=(480 + 2 * ph, 640 + 2 * pw), mode="bicubic", align_corners=False)
     full = full[:, 0, ph:ph + 480, pw:pw + 640][:, ::4, ::4]
     assert torch.allclose(A @ d @ B.T, full, atol=1e-4)
+
+
+def test_gradient_loss_is_scale_free_and_counts_only_valid_neighbours():
+    gt = torch.full((1, 4, 4), 2.0)
+    assert float(T.gradient_loss(3.0 * gt, gt)) == pytest.approx(0.0, abs=1e-7)  # a global scale: no shape error
+    pred = gt.clone()
+    pred[0, :, 2:] = 2.0 * np.e  # log residual 0 | 1: one step per row along x at stride 1
+    # stride 1: 4 x-steps of 1 over 12 x-pairs + 12 y-pairs; stride 2: 2 x-steps of 1 over 2 + 2 pairs;
+    # stride 4: one pixel, no pair (0)
+    want = (4 / 24 + 2 / 4 + 0) / 3
+    assert float(T.gradient_loss(pred, gt)) == pytest.approx(want, rel=1e-6)
+    gt_holes = gt.clone()
+    gt_holes[0, :, 2] = 0  # no true depth across the step: the residual's jump is never compared
+    assert float(T.gradient_loss(pred, gt_holes, scales=(1,))) == pytest.approx(0.0, abs=1e-7)
+    assert float(T.depth_loss(pred, gt, grad_weight=2.0)) == pytest.approx(
+        float(T.depth_loss(pred, gt)) + 2.0 * want, rel=1e-6)
 
 
 def test_training_steps_lower_the_loss(data, tmp_path):

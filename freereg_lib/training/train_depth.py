@@ -25,7 +25,8 @@ Pre- and post-processing are the inference path's
 Loss, on valid pixels (true depth > 0): ZoeDepth's scale-invariant log loss
 ``10 * sqrt(Var(g) + 0.15 * mean(g)^2)``, ``g = log(pred) - log(true)`` pooled over the batch,
 plus the mean absolute error in metres (``--l1-weight``, default 1), which is what the
-acceptance measures. Augmentation: horizontal flips (the prediction is flipped back before
+acceptance measures; ``--grad-weight`` adds MiDaS's multi-scale gradient matching on log depth
+(:func:`gradient_loss`, default 0: off). Augmentation: horizontal flips (the prediction is flipped back before
 the loss, as the flip average does at inference).
 
 Seeded (a step's batch, flips and dropout draws depend only on ``(seed, step)``), checkpoints every
@@ -51,6 +52,7 @@ from freereg_lib.training.views import DEPTH_HW, RENDER_HW, WORLD_KINDS, load_or
 from freereg_lib.training.provenance import machine_record
 
 VAL_SCENES = 20
+GRADIENT_SCALES = (1, 2, 4)
 SILOG_BETA = 0.15  # ZoeDepth's SILogLoss: Dg = Var(g) + beta * mean(g)^2 (beta = 1 - lambda, lambda = 0.85)
 
 
@@ -67,6 +69,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--lr", type=float, default=5e-4)
     p.add_argument("--warmup", type=int, default=100, help="linear learning-rate warm-up steps")
     p.add_argument("--l1-weight", type=float, default=1.0, help="weight of the L1 (metres) term beside SILog")
+    p.add_argument("--grad-weight", type=float, default=0.0,
+                   help="weight of the multi-scale gradient term on log depth (0: none)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--checkpoint-every", type=int, default=100)
     p.add_argument("--threads", type=int, default=1, help="torch threads (the machine is shared: 1)")
@@ -154,8 +158,26 @@ class Data:
         return self.A @ pred @ self.B.T
 
 
-def depth_loss(pred, gt, l1_weight: float = 1.0):
-    """SILog (ZoeDepth's, pooled over the batch) + ``l1_weight`` x mean |pred - gt| (m), valid pixels."""
+def gradient_loss(pred, gt, scales=GRADIENT_SCALES):
+    """MiDaS's multi-scale gradient matching on log depth: the mean of ``|d/dx r| + |d/dy r|``,
+    ``r = log(pred) - log(true)``, over neighbouring valid pixels at strides ``scales``. Scale-free,
+    it weighs the local shape (the surfaces' orientations) that SILog and L1 average away."""
+    import torch
+
+    valid = gt > 0
+    r = torch.where(valid, torch.log(pred.clamp_min(1e-3)) - torch.log(gt.clamp_min(1e-3)), 0.0)
+    total = pred.new_zeros(())
+    for s in scales:
+        rs, vs = r[:, ::s, ::s], valid[:, ::s, ::s]
+        vx, vy = vs[:, :, 1:] & vs[:, :, :-1], vs[:, 1:, :] & vs[:, :-1, :]
+        gx, gy = (rs[:, :, 1:] - rs[:, :, :-1]).abs(), (rs[:, 1:, :] - rs[:, :-1, :]).abs()
+        total = total + (gx[vx].sum() + gy[vy].sum()) / (vx.sum() + vy.sum()).clamp_min(1)
+    return total / len(scales)
+
+
+def depth_loss(pred, gt, l1_weight: float = 1.0, grad_weight: float = 0.0):
+    """SILog (ZoeDepth's, pooled over the batch) + ``l1_weight`` x mean |pred - gt| (m), valid pixels,
+    + ``grad_weight`` x :func:`gradient_loss`."""
     import torch
 
     valid = gt > 0
@@ -163,7 +185,8 @@ def depth_loss(pred, gt, l1_weight: float = 1.0):
     t = gt[valid]
     g = torch.log(p) - torch.log(t)
     silog = 10.0 * torch.sqrt(g.var(unbiased=False) + SILOG_BETA * g.mean() ** 2 + 1e-12)
-    return silog + l1_weight * (p - t).abs().mean()
+    loss = silog + l1_weight * (p - t).abs().mean()
+    return loss + grad_weight * gradient_loss(pred, gt) if grad_weight else loss
 
 
 def val_mae(model, data: Data, batch: int = 16) -> float:
@@ -244,7 +267,7 @@ def train(model, data: Data, args, out: Path, progress: bool = True, initial_log
     for step in bar:
         rng = step_rng(args.seed, step)
         idx, flips = data.batch_index(rng, args.batch)
-        loss = depth_loss(data.predict(model, idx, flips), data.depth[idx], args.l1_weight)
+        loss = depth_loss(data.predict(model, idx, flips), data.depth[idx], args.l1_weight, args.grad_weight)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
@@ -313,7 +336,8 @@ def main(argv=None) -> int:
             "arguments": {k: v for k, v in vars(args).items() if k not in ("out", "views", "export", "threads")},
             "train_stream": "numpy.random.default_rng((0xF3EE0001, room)) for rooms 0..scenes-1",
             "validation_rooms": VAL_SCENES,
-            "loss": f"SILog (ZoeDepth, beta {SILOG_BETA}) + {args.l1_weight} x L1 (m)",
+            "loss": f"SILog (ZoeDepth, beta {SILOG_BETA}) + {args.l1_weight} x L1 (m)"
+                    + (f" + {args.grad_weight} x log-depth gradients" if args.grad_weight else ""),
             "parameters_millions": round(sum(p.numel() for p in model.parameters()) / 1e6, 3),
             "step_seconds": round(log["seconds"], 1),
             "last_run_seconds": round(seconds, 1),
