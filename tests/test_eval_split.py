@@ -2,6 +2,7 @@
 import json
 
 import numpy as np
+import pytest
 
 from freereg_lib.training import evaluate_split as ES
 from freereg_lib.training import splits
@@ -49,3 +50,20 @@ def test_the_notebook_verdicts_read_the_committed_test_split():
         assert "100 synthetic indoor pairs" in lines[0]
     assert "disagree with the paper" in "\n".join(verdicts.table2())
     assert verdicts.glimpse(3).startswith("Glimpse: 3 live pair(s)")
+
+
+def test_a_depth_error_without_the_stub_depth_is_refused_before_any_pair(tmp_path, capsys):
+    rows = tmp_path / "rows.jsonl"
+    with pytest.raises(SystemExit) as exc:
+        ES.main(["--split", "rooms-dev", "--mono-mae", "0", "--rows", str(rows)])
+    assert exc.value.code == 2 and "pass --mono-depth stub" in capsys.readouterr().err
+    assert not rows.exists()
+
+
+@pytest.mark.parametrize("mae, says", [(None, "the stub's designed error)"), (0.0, "the true depth"),
+                                      (0.5, "the stub's designed error, MAE 0.5 m")])
+def test_the_backend_label_names_the_monocular_depth_it_runs(mae, says):
+    from freereg_lib.config import FreeRegConfig
+    from freereg_lib.models import get_backend
+
+    assert says in get_backend("micro", FreeRegConfig(), device="cpu", mono_depth="stub", mono_mae=mae).label

@@ -330,7 +330,8 @@ class MicroBackend(_TorchBackend):
                 "(or pass mono_depth='stub')")
         self._stub = None
         kind = "random weights, same architectures" if self.random_weights else "trained on synthetic rooms"
-        mono = "the micro ZoeDepth" if mono_depth == "micro" else "the stub's designed error"
+        mono = ("the micro ZoeDepth" if mono_depth == "micro" else "the true depth (the stub's error at 0 m)"
+                if mono_mae == 0 else "the stub's designed error" + ("" if mono_mae is None else f", MAE {mono_mae:g} m"))
         self.label = f"micro backend (SD-layout diffusion models + ZoeDepth, {kind}; monocular depth: {mono})"
 
     def layer_shapes(self) -> list[tuple[int, int]]:

@@ -63,10 +63,13 @@ def load_features(path: Path):
 
 
 def run(split_name: str, n_pairs: int, rows_path: Path, shard: str = "0/1", weights_dir=None,
-        progress: bool = True, cache: Path | None = None, ks=None) -> None:
+        progress: bool = True, cache: Path | None = None, ks=None, mono_depth: str = "micro",
+        mono_mae: float | None = None) -> None:
     """Append the rows of the split's pairs ``k < n_pairs`` with ``k % n == i`` (``shard = "i/n"``)
     not yet in ``rows_path`` (only those in ``ks`` when given); with ``cache``, each pair's features
-    are also saved there (``<k>.npz``, for choices made on the development set without recomputing them)."""
+    are also saved there (``<k>.npz``, for choices made on the development set without recomputing them).
+    ``mono_depth``, ``mono_mae``: the micro backend's monocular depth (``"stub"`` with ``mono_mae`` 0 is
+    the true depth: the geometric half's ceiling)."""
     from tqdm import tqdm
 
     from freereg_lib import pipeline
@@ -77,7 +80,7 @@ def run(split_name: str, n_pairs: int, rows_path: Path, shard: str = "0/1", weig
     split = SPLITS[split_name]
     i, n = parse_shard(shard)
     cfg = FreeRegConfig(seed=split.noise_seed)
-    backend = get_backend("micro", cfg, device="cpu", weights_dir=weights_dir)
+    backend = get_backend("micro", cfg, device="cpu", weights_dir=weights_dir, mono_depth=mono_depth, mono_mae=mono_mae)
     done = _done(rows_path)
     todo = [k for k in (range(n_pairs) if ks is None else ks) if k % n == i and k not in done]
     rows_path.parent.mkdir(parents=True, exist_ok=True)
@@ -333,6 +336,10 @@ def main(argv=None) -> int:
                    help="per-pair rows (JSON lines): appended to (the first), or summarized (all)")
     p.add_argument("--summarize", action="store_true", help="summarize --rows into --out instead of running")
     p.add_argument("--cache", default=None, help="also save each pair's features here (<k>.npz)")
+    p.add_argument("--mono-depth", default="micro", choices=("micro", "stub"),
+                   help="the monocular depth: the micro ZoeDepth, or the stub's designed error of the true depth")
+    p.add_argument("--mono-mae", type=float, default=None,
+                   help="with --mono-depth stub: its mean error in metres (0: the true depth)")
     p.add_argument("--out", default=None)
     p.add_argument("--run-command", action="append", default=[],
                    help="(with --summarize) a command line that produced the rows, recorded in the JSON")
@@ -340,6 +347,8 @@ def main(argv=None) -> int:
     split = SPLITS[args.split]
     try:  # bad values stop here with one line (exit 2), before any pair runs
         parse_shard(args.shard)
+        if args.mono_mae is not None and args.mono_depth != "stub":
+            raise ValueError("--mono-mae sets the stub's depth error: pass --mono-depth stub with it")
         if args.pairs is not None and args.pairs < 1:
             raise ValueError(f"--pairs must be >= 1, got {args.pairs}")
     except ValueError as exc:
@@ -347,7 +356,7 @@ def main(argv=None) -> int:
     recs = rows_to_summarize(p, args.rows) if args.summarize else None
     if not args.summarize:
         run(args.split, args.pairs or split.n_pairs, Path(args.rows[0]), args.shard, args.weights,
-            cache=Path(args.cache) if args.cache else None)
+            cache=Path(args.cache) if args.cache else None, mono_depth=args.mono_depth, mono_mae=args.mono_mae)
         return 0
     res = summarize(recs, args.split)
     res["commands"] = args.run_command + [
