@@ -108,3 +108,13 @@ def test_the_rooms_splits_draw_rooms_pairs_and_the_old_splits_blocks_pairs(tmp_p
         evaluate_split.run(name, 1, rows, progress=False)
         (rec,) = [json.loads(line) for line in rows.read_text().splitlines()]
         assert rec["pair"] == f"synthetic-{world}/seed{SPLITS[name].seed * 1_000_003}"
+
+
+def test_a_rooms_training_camera_inside_furniture_is_drawn_again():
+    # Training room 931's third camera stands inside a piece of furniture (no pixel between 0.05
+    # and 10 m: its views used to stop the whole render); every view kept sees the room.
+    from freereg_lib.training import views
+
+    depth = views._scene_views((931, 4, "rooms"))["depth"]
+    lo, hi = views.OPEN_DEPTH_M
+    assert np.all(np.mean((depth > lo) & (depth < hi), axis=(1, 2)) >= views.MIN_OPEN_SHARE)
