@@ -35,22 +35,22 @@ def test_the_true_depth_beats_a_blurred_one(tmp_path):
     from freereg_lib.data import sources
 
     out = tmp_path / "ceiling.json"
-    C.main(["--split", "rooms-dev", "--pairs", "1", "--out", str(out)])
+    C.main(["--split", "rooms-dev", "--pairs", "2", "--out", str(out)])
     res = json.loads(out.read_text())
-    assert res["n_pairs"] == 1 and res["split"] == "rooms development"
+    assert res["n_pairs"] == 2 and res["split"] == "rooms development"
     assert set(res["summary"]) == {"true", "true at 96 x 128"}
 
-    from freereg_lib.config import config_for
+    from freereg_lib.config import FreeRegConfig
     from freereg_lib.models import get_backend
 
-    pair = next(iter(sources.iter_pairs("synthetic_rooms", 1, seed=5150)))
-    cfg = config_for("3dmatch")
+    pair = list(sources.iter_pairs("synthetic_rooms", 2, seed=5150))[1]
+    cfg = FreeRegConfig(seed=0)
     backend = get_backend("stub", cfg)
     true_ir, n_true = C.geometric_ir(pair, pair.depth_gt, backend, cfg)
-    assert (true_ir, n_true) == (pytest.approx(res["rows"]["true"][0]["IR"]), res["rows"]["true"][0]["n_evaluable"])
+    assert (true_ir, n_true) == (pytest.approx(res["rows"]["true"][1]["IR"]), res["rows"]["true"][1]["n_evaluable"])
     import cv2
 
     smooth = cv2.GaussianBlur(pair.depth_gt.astype(np.float32), (0, 0), 25).astype(np.float64)  # shapes blurred away
     rough_ir, n_rough = C.geometric_ir(pair, smooth, backend, cfg)
     assert n_true >= 3 and n_rough >= 3
-    assert true_ir > 0.2 and rough_ir < 0.5 * true_ir
+    assert true_ir > 0.15 and rough_ir < 0.5 * true_ir

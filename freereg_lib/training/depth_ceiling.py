@@ -1,7 +1,8 @@
 """How much of the geometric half's inlier ratio a monocular depth keeps.
 
-FreeReg-G (FPFH, the ``3dmatch`` config) on a split's pairs, its image side lifted with each depth
-source in turn, its depth side the sensor's cloud as always:
+FreeReg-G (FPFH) on a split's pairs with the config of the split evaluation
+(:mod:`freereg_lib.training.evaluate_split`: the paper's defaults, the split's noise seed), its image
+side lifted with each depth source in turn, its depth side the sensor's cloud as always:
 
 * ``true``: the image's true depth, the ceiling no depth model can pass;
 * ``true at 96 x 128``: the true depth brought to the micro ZoeDepth's output size and back
@@ -57,15 +58,13 @@ def mean_abs_error(depth: np.ndarray, truth: np.ndarray) -> float:
     return float(np.abs(depth[valid] - truth[valid]).mean())
 
 
-def measure(pairs, weights: list[str], progress: bool = True) -> dict[str, list[dict]]:
-    """Per source name, one ``{"pair", "IR", "n_evaluable", "MAE"}`` row per pair."""
+def measure(pairs, weights: list[str], cfg, progress: bool = True) -> dict[str, list[dict]]:
+    """Per source name, one ``{"pair", "IR", "n_evaluable", "MAE"}`` row per pair, with ``cfg``."""
     from tqdm.auto import tqdm
 
-    from freereg_lib.config import config_for
     from freereg_lib.models import get_backend
     from freereg_lib.models.micro import depth as micro_depth
 
-    cfg = config_for("3dmatch")
     backend = get_backend("stub", cfg)  # no monocular depth is asked of it: every source is given
     models = {w: micro_depth.load(w) for w in weights}
     rows: dict[str, list[dict]] = {"true": [], "true at 96 x 128": [], **{w: [] for w in weights}}
@@ -110,6 +109,7 @@ def table(summary: dict) -> str:
 
 
 def main(argv=None) -> None:
+    from freereg_lib.config import FreeRegConfig
     from freereg_lib.data import sources
     from freereg_lib.training.evaluate_split import stamped
     from freereg_lib.training.provenance import machine_record
@@ -125,11 +125,13 @@ def main(argv=None) -> None:
     n = split.n_pairs if a.pairs is None else a.pairs
     guard_eval_seed(split.seed, n)
     dataset = "synthetic_rooms" if split.world == "rooms" else "synthetic_indoor"
-    rows = measure(list(sources.iter_pairs(dataset, n, seed=split.seed)), list(a.weights))
+    cfg = FreeRegConfig(seed=split.noise_seed)
+    rows = measure(list(sources.iter_pairs(dataset, n, seed=split.seed)), list(a.weights), cfg)
     summary = summarize(rows, list(a.weights))
     print(table(summary))
     if a.out:
-        res = stamped({"split": split.name, "dataset_seed": split.seed, "n_pairs": n, "config": "3dmatch, FPFH",
+        res = stamped({"split": split.name, "dataset_seed": split.seed, "n_pairs": n,
+                       "config": {"geometric": cfg.geometric, "densify": cfg.densify, "seed": cfg.seed},
                        "summary": summary, "rows": rows, "provenance": machine_record(),
                        "command": "python -m freereg_lib.training.depth_ceiling " + " ".join(sys.argv[1:] if argv is None else argv)})
         Path(a.out).write_text(json.dumps(res, indent=1) + "\n")
