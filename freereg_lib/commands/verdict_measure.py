@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import math
+from pathlib import Path
 
 import numpy as np
 
@@ -249,7 +250,10 @@ def _null(table) -> np.ndarray:
 
 def _null_solved_mean(table) -> np.ndarray:
     """The mean of the shuffles that found a pose (a failed shuffle, 0, is no count), at least the floor."""
-    floor = _null(table.assign(null_inliers=""))
+    from freereg_lib.pipeline import verdict
+
+    cfg = _config()
+    floor = np.array([verdict.null_of([], s, cfg) for s in table["solver"]], dtype=float)
     solved = [[v for v in nulls_of(c) if v > 0] for c in table["null_inliers"]]
     return np.maximum(floor, [np.mean(v) if v else 0.0 for v in solved])
 
@@ -347,6 +351,12 @@ def candidate_lines(fit, tables: dict, extra: dict | None = None) -> list[str]:
     return lines
 
 
+def _set_name(path) -> str:
+    """A rows file's name in the candidates table: ``verdict_icl_report_rows.csv`` -> ``ICL report``."""
+    stem = Path(path).name.split(".")[0].removeprefix("verdict_").removesuffix("_rows")
+    return {"icl_report": "ICL report", "icl_fit": "ICL fit", "tum": "TUM"}.get(stem, stem)
+
+
 def describe(rule: dict) -> str:
     """A rule as one line: per solver its least support and (Kabsch) scale bound."""
     return "; ".join(f"{s}: support >= {rule['min_support'][s]:g} x the shuffled matches' inliers"
@@ -377,11 +387,8 @@ def main(argv=None) -> None:
     if a.targets:
         print("\n".join(target_lines(report, rule)))
     if a.candidates:
-        short = {"icl_report": "ICL report", "icl_fit": "ICL fit", "tum": "TUM"}
-        name = lambda path: (lambda n: short.get(n, n))(
-            str(path).replace("\\", "/").split("/")[-1].split(".")[0].removeprefix("verdict_").removesuffix("_rows"))
-        print("\n".join(candidate_lines(fit, {name(c): read_rows(c) for c in a.candidates},
-                                        {name(c): read_rows(c) for c in a.fit_also})))
+        print("\n".join(candidate_lines(fit, {_set_name(c): read_rows(c) for c in a.candidates},
+                                        {_set_name(c): read_rows(c) for c in a.fit_also})))
 
 
 if __name__ == "__main__":

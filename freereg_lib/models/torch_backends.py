@@ -330,8 +330,12 @@ class MicroBackend(_TorchBackend):
                 "(or pass mono_depth='stub')")
         self._stub = None
         kind = "random weights, same architectures" if self.random_weights else "trained on synthetic rooms"
-        mono = ("the micro ZoeDepth" if mono_depth == "micro" else "the true depth (the stub's error at 0 m)"
-                if mono_mae == 0 else "the stub's designed error" + ("" if mono_mae is None else f", MAE {mono_mae:g} m"))
+        if mono_depth == "micro":
+            mono = "the micro ZoeDepth"
+        elif mono_mae == 0:
+            mono = "the true depth (the stub's error at 0 m)"
+        else:
+            mono = "the stub's designed error" + ("" if mono_mae is None else f", MAE {mono_mae:g} m")
         self.label = f"micro backend (SD-layout diffusion models + ZoeDepth, {kind}; monocular depth: {mono})"
 
     def layer_shapes(self) -> list[tuple[int, int]]:

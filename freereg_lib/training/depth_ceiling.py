@@ -22,9 +22,7 @@ paired permutation test. IR does not depend on the solver, so none runs.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-from pathlib import Path
 
 import numpy as np
 
@@ -110,9 +108,8 @@ def table(summary: dict) -> str:
 
 def main(argv=None) -> None:
     from freereg_lib.config import FreeRegConfig
-    from freereg_lib.data import sources
-    from freereg_lib.training.evaluate_split import stamped
-    from freereg_lib.training.provenance import machine_record
+    from freereg_lib.data import synthetic
+    from freereg_lib.training.evaluate_split import publish, stamped
     from freereg_lib.training.splits import SPLITS, guard_eval_seed
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -124,18 +121,15 @@ def main(argv=None) -> None:
     split = SPLITS[a.split]
     n = split.n_pairs if a.pairs is None else a.pairs
     guard_eval_seed(split.seed, n)
-    dataset = "synthetic_rooms" if split.world == "rooms" else "synthetic_indoor"
     cfg = FreeRegConfig(seed=split.noise_seed)
-    rows = measure(list(sources.iter_pairs(dataset, n, seed=split.seed)), list(a.weights), cfg)
+    pairs = [synthetic.make_pair("indoor", seed=s, world=split.world) for s in split.pair_seeds(n)]  # as evaluate_split
+    rows = measure(pairs, list(a.weights), cfg)
     summary = summarize(rows, list(a.weights))
-    print(table(summary))
-    if a.out:
-        res = stamped({"split": split.name, "dataset_seed": split.seed, "n_pairs": n,
-                       "config": {"geometric": cfg.geometric, "densify": cfg.densify, "seed": cfg.seed},
-                       "summary": summary, "rows": rows, "provenance": machine_record(),
-                       "command": "python -m freereg_lib.training.depth_ceiling " + " ".join(sys.argv[1:] if argv is None else argv)})
-        Path(a.out).write_text(json.dumps(res, indent=1) + "\n")
-        print(f"written to {a.out}")
+    res = stamped({"split": split.name, "dataset_seed": split.seed, "n_pairs": n,
+                   "config": {"geometric": cfg.geometric, "densify": cfg.densify, "seed": cfg.seed},
+                   "summary": summary, "rows": rows,
+                   "command": "python -m freereg_lib.training.depth_ceiling " + " ".join(sys.argv[1:] if argv is None else argv)})
+    publish(res, table(summary), a.out)
 
 
 if __name__ == "__main__":

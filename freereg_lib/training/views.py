@@ -80,13 +80,11 @@ def _scene_views(args) -> dict[str, np.ndarray]:
     K = intrinsics(f, f, (W - 1) / 2, (H - 1) / 2)
     out = {"rgb": [], "hint": [], "depth": []}
     for _ in range(views_per_scene):
-        T_world_cam = camera_of(rng, room)
-        hits, depth, _ids = scene.camera_view(T_world_cam, K, RENDER_HW)
-        for _redraw in range(BLOCKED_REDRAWS if kind == "rooms" else 0):
-            if np.mean((depth > OPEN_DEPTH_M[0]) & (depth < OPEN_DEPTH_M[1])) >= MIN_OPEN_SHARE:
-                break
+        for _draw in range(1 + (BLOCKED_REDRAWS if kind == "rooms" else 0)):
             T_world_cam = camera_of(rng, room)
             hits, depth, _ids = scene.camera_view(T_world_cam, K, RENDER_HW)
+            if kind != "rooms" or np.mean((depth > OPEN_DEPTH_M[0]) & (depth < OPEN_DEPTH_M[1])) >= MIN_OPEN_SHARE:
+                break
         image = scene.shade(hits, RENDER_HW)
         if sense is None:
             pts = transform(T_world_cam, backproject(depth, K)[0])
