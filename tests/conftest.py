@@ -103,6 +103,16 @@ def pytest_sessionfinish(session):
         DURATIONS.write_text(json.dumps({u: round(s, 1) for u, s in sorted(_recorded.items())}, indent=0) + "\n")
 
 
+def load_tool(name: str):
+    """The script ``tools/<name>.py`` as a module (the tools folder is not a package)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, NOTEBOOKS.parent / "tools" / f"{name}.py")
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    return tool
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)

@@ -3,17 +3,11 @@ is fitted and reported on are measured with the command's chain (``tools/verdict
 the rule and its rates: ``tests/test_verdict_holdout.py``."""
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
-
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import load_tool
 
 
 def test_the_rows_are_measured_with_the_commands_chain(tmp_path):
-    spec = importlib.util.spec_from_file_location("verdict_holdout", ROOT / "tools" / "verdict_holdout.py")
-    tool = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tool)
+    tool = load_tool("verdict_holdout")
     out = tmp_path / "rows.csv"
     rows = tool.half_rows("report", str(out), n_pairs=1, iters=300)
     assert rows["pair"].tolist() == ["icl/00110-00120"] * 4 and (rows["gap"] == 10).all()
@@ -53,9 +47,7 @@ def test_another_folder_is_measured_on_its_overlapping_pairs(tmp_path):
 
     from freereg_lib.data.datasets.icl import TUM_ROOT, ICLSample
 
-    spec = importlib.util.spec_from_file_location("verdict_holdout", ROOT / "tools" / "verdict_holdout.py")
-    tool = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tool)
+    tool = load_tool("verdict_holdout")
     root = tmp_path / "tiny"
     for sub in ("color", "depth"):
         (root / sub).mkdir(parents=True)

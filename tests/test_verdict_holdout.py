@@ -146,11 +146,8 @@ def test_the_documented_candidate_statistics():
 def test_the_documented_solver_agreement_table_is_the_measured_gaps_table():
     # tools/verdict_agreement.py --out tests/fixtures/verdict_agreement_gaps.csv (about 30 minutes) measured the
     # gap between the Kabsch and the PnP pose of every pair; its table, refitted here, is the docs' table.
-    import importlib.util
+    from conftest import load_tool
 
-    spec = importlib.util.spec_from_file_location("verdict_agreement", ROOT / "tools" / "verdict_agreement.py")
-    tool = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tool)
-    lines = tool.table(pd.read_csv(ROOT / "tests" / "fixtures" / "verdict_agreement_gaps.csv"))
+    lines = load_tool("verdict_agreement").table(pd.read_csv(ROOT / "tests" / "fixtures" / "verdict_agreement_gaps.csv"))
     docs = (ROOT / "docs" / "your_data.md").read_text()
     assert len(lines) == 6 and all(line in docs for line in lines), [line for line in lines if line not in docs]
