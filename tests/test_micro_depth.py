@@ -73,11 +73,12 @@ def test_gradient_loss_is_scale_free_and_counts_only_valid_neighbours():
         float(T.depth_loss(pred, gt)) + 2.0 * want, rel=1e-6)
 
 
-def test_training_steps_lower_the_loss(data, tmp_path):
+@pytest.mark.parametrize("backbone", MD.BACKBONES)
+def test_training_steps_lower_the_loss(data, tmp_path, backbone):
     # Judged on one fixed batch (the 4 training views, unflipped) before and after: the steps'
     # own losses are of random batches and flips, too noisy over 8 steps to compare. At lr 2e-3
     # the 8 steps overshoot on some CPUs (an AMD EPYC: 12.0 -> 12.4); at 1e-3 the loss falls.
-    model = MD.build(0)
+    model = MD.build(0, backbone)
     idx = np.arange(data.n_train)
 
     def fixed_loss():
@@ -149,20 +150,31 @@ def test_a_continuation_goes_on_from_the_earlier_log_and_resumes_bit_identically
     assert all(torch.equal(a[k], b[k]) for k in a)
 
 
-def test_save_load_round_trip(tmp_path):
-    model = MD.build(1).eval()
+@pytest.mark.parametrize("backbone, hw", [("beit", (96, 128)), ("swinv2", (96, 128)), ("swinv2", (90, 160))])
+def test_save_load_round_trip(tmp_path, backbone, hw):
+    # (90, 160): an image of another aspect ratio gives a processed size Swin's windows do not divide
+    model = MD.build(1, backbone).eval()
     MD.save(model, tmp_path)
     assert not MD.missing_files(tmp_path)
     est = MD.load(tmp_path)
-    img = (np.random.default_rng(0).random((96, 128, 3)) * 255).astype(np.uint8)
-    ref = MD.estimator(model.to(torch.float16).to(torch.float32))(img)  # float16 storage
+    assert type(est.model.backbone).__name__.lower().startswith(backbone)
+    img = (np.random.default_rng(0).random((*hw, 3)) * 255).astype(np.uint8)
+    with torch.no_grad():  # float16 storage of the weights; Swin's non-persistent buffers stay float32
+        for t in model.state_dict().values():
+            t.copy_(t.half().float())
+    ref = MD.estimator(model)(img)
     out = est(img)
-    assert out.shape == (96, 128)
+    assert out.shape == hw and np.isfinite(out).all()
     np.testing.assert_allclose(out, ref, atol=1e-4)
     from freereg_lib.models.base import MissingWeightsError
 
     with pytest.raises(MissingWeightsError, match="train_depth"):
         MD.load(tmp_path / "nowhere")
+
+
+def test_an_unknown_backbone_is_named():
+    with pytest.raises(ValueError, match="'vit': expected one of beit, swinv2"):
+        MD.config("vit")
 
 
 def test_micro_backend_depth_without_depth_gt(tmp_path):

@@ -1,7 +1,7 @@
 """Train the micro monocular depth (:mod:`.depth`) from scratch on the synthetic rooms.
 
     python -m freereg_lib.training.train_depth [--out runs/micro/train] [--scenes 500]
-        [--steps 1500] [--batch 8] [--lr 5e-4] [--threads 1]
+        [--backbone beit] [--steps 1500] [--batch 8] [--lr 5e-4] [--threads 1]
         [--export freereg_lib/models/micro/weights/depth]
 
 Data: the cached training views (:mod:`.views`, the same ``views_indoor.npz`` the diffusion
@@ -64,6 +64,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--views-per-scene", type=int, default=4)
     p.add_argument("--world", default="indoor", choices=WORLD_KINDS,
                    help="the synthetic world: indoor (blocks, the committed weights') or rooms (calibrated)")
+    p.add_argument("--backbone", default="beit", choices=MD.BACKBONES,
+                   help="the micro ZoeDepth's backbone (models.micro.depth): beit (the committed weights') or "
+                        "swinv2 (hierarchical, stride-4 features)")
     p.add_argument("--steps", type=int, default=1500)
     p.add_argument("--batch", type=int, default=8)
     p.add_argument("--lr", type=float, default=5e-4)
@@ -327,7 +330,7 @@ def main(argv=None) -> int:
         initial = {"loss": earlier["loss_per_step"], "val_mae": earlier["val_mae"],
                    "seconds": earlier["step_seconds"]}
     else:
-        model, initial = MD.build(args.seed), None
+        model, initial = MD.build(args.seed, args.backbone), None
     log = train(model, data, args, out, initial_log=initial)
     seconds = time.perf_counter() - t_start
     if args.export:

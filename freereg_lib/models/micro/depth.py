@@ -5,9 +5,15 @@ The class, the image processor and the inference path are the ones the ``real`` 
 ``int(sqrt(h / 2) * 3)`` pixels, resize keeping the aspect ratio to a multiple of the patch
 size, flip averaging, bicubic resize back, padding cropped); only the sizes are small:
 
-* backbone: BEiT with relative position bias (as ZoeDepth's BEiT-L), 4 layers x 128 channels,
-  patch 16, its four stages read after layers 1..4;
-* neck: DPT reassemble + fusion at 32 channels (``neck_hidden_sizes`` 32, 64, 128, 128);
+* backbone, one of :data:`BACKBONES`:
+
+  - ``beit`` (the committed weights'): BEiT with relative position bias (as ZoeDepth's BEiT-L),
+    4 layers x 128 channels, patch 16, its four stages read after layers 1..4; at 96 x 128 that is
+    a 6 x 8 grid of tokens, so every detail finer than 16 pixels has to be decoded from a token;
+  - ``swinv2``: a hierarchical Swin V2 (as ZoeDepth's Swin2 variants), patch 4, 32 channels,
+    depths 2, 2, 2, 2, windows of 8, its stages at strides 4, 8, 16 and 32 handed to the neck
+    without reassembling (transformers' ZoeDepth neck does this for ``swinv2``);
+* neck: DPT (reassemble for BEiT) + fusion at 32 channels;
 * head: one metric bin configuration for indoor ranges, 32 bins over 0.1..10 m (ZoeDepth's
   NYU head: 64 bins over 1e-3..10 m), attractors 8, 4, 2, 1;
 * input: a 480 x 640 image padded to 572 x 746 is processed at 96 x 128 (ZoeDepth's NYU
@@ -42,8 +48,18 @@ BACKBONE = dict(
     reshape_hidden_states=False,
     out_features=["stage1", "stage2", "stage3", "stage4"],
 )
+SWINV2 = dict(
+    image_size=96,
+    patch_size=4,
+    embed_dim=32,
+    depths=[2, 2, 2, 2],
+    num_heads=[1, 2, 4, 8],
+    window_size=8,
+    out_features=["stage1", "stage2", "stage3", "stage4"],
+)
+BACKBONES = ("beit", "swinv2")
+NECK_SIZES = {"beit": [32, 64, 128, 128], "swinv2": [32, 64, 128, 256]}  # swinv2: its stages' channels
 ZOE = dict(
-    neck_hidden_sizes=[32, 64, 128, 128],
     fusion_hidden_size=32,
     bottleneck_features=32,
     bin_embedding_dim=32,
@@ -64,11 +80,14 @@ PROCESSOR = dict(
 FILES = ("config.json", "model.safetensors", "preprocessor_config.json")
 
 
-def config():
-    """The micro ``ZoeDepthConfig``."""
-    from transformers import BeitConfig, ZoeDepthConfig
+def config(backbone: str = "beit"):
+    """The micro ``ZoeDepthConfig`` with ``backbone`` (one of :data:`BACKBONES`)."""
+    from transformers import BeitConfig, Swinv2Config, ZoeDepthConfig
 
-    return ZoeDepthConfig(backbone_config=BeitConfig(**BACKBONE), **ZOE)
+    if backbone not in BACKBONES:
+        raise ValueError(f"backbone {backbone!r}: expected one of {', '.join(BACKBONES)}")
+    backbone_config = BeitConfig(**BACKBONE) if backbone == "beit" else Swinv2Config(**SWINV2)
+    return ZoeDepthConfig(backbone_config=backbone_config, neck_hidden_sizes=NECK_SIZES[backbone], **ZOE)
 
 
 def processor():
@@ -77,8 +96,9 @@ def processor():
     return _processor_class()(**PROCESSOR)
 
 
-def build(seed: int = 0):
-    """A fresh micro ``ZoeDepthForDepthEstimation`` with seeded random weights (train mode).
+def build(seed: int = 0, backbone: str = "beit"):
+    """A fresh micro ``ZoeDepthForDepthEstimation`` (``backbone`` one of :data:`BACKBONES`) with
+    seeded random weights (train mode).
 
     transformers' default init (std 0.02) leaves the small neck's signal near zero, so every
     image would start at one depth; Kaiming weights in the neck and heads (as
@@ -88,7 +108,7 @@ def build(seed: int = 0):
     from transformers import ZoeDepthForDepthEstimation
 
     torch.manual_seed(seed)
-    model = ZoeDepthForDepthEstimation(config())
+    model = ZoeDepthForDepthEstimation(config(backbone))
     with torch.no_grad():
         for name, mod in model.named_modules():
             if not name.startswith("backbone") and isinstance(
