@@ -28,7 +28,9 @@ the ``.json`` of ``tools/verdict_holdout.py sample`` (another sensor's frames, `
 
 ``--candidates ROWS ...`` adds other statistics than the support (:data:`STATISTICS`: the inlier
 fraction, the inliers, a binomial p-value against the null's inlier rate, ...), each fitted on
-``--fit`` (and on ``--fit`` plus ``--fit-also``) and counted on each ``ROWS`` (:func:`candidate_lines`).
+``--fit`` (and on ``--fit`` plus ``--fit-also``) and counted on each ``ROWS`` (:func:`candidate_lines`),
+then two of them (or the number of matches) combined by AND / OR and a logistic regression, fitted on
+``--fit``, with a bound chosen on the last ``ROWS`` (:func:`combined_lines`).
 """
 from __future__ import annotations
 
@@ -351,6 +353,171 @@ def candidate_lines(fit, tables: dict, extra: dict | None = None) -> list[str]:
     return lines
 
 
+# Two statistics combined (:func:`combined_lines`): REGISTERED when ``a >= x`` AND (or OR) ``b >= y``,
+# for every pair of :data:`STATISTICS` and the number of matches; and a logistic regression.
+PARTNERS = {**STATISTICS, "matches n": lambda t: _col(t, "n_matches")}
+MODES = ("AND", "OR")
+
+
+def fit_combined(table, a: str, b: str, mode: str) -> dict:
+    """Per solver the least values ``(x, y)`` of ``PARTNERS[a]`` and ``PARTNERS[b]``, fitted on ``table``
+    as :func:`fit_statistic` ``"no wrong pose"``: no solved wrong pose (outside :data:`WRONG`)
+    REGISTERED and, of those, the fewest right poses FAILED. ``OR``: each just above its strongest
+    wrong pose; ``AND``: for each ``x`` (on the grid just above the table's values) the least ``y``
+    that passes no wrong pose, ties to the least ``x`` (one statistic alone when it does as well)."""
+    va, vb, ok, right = PARTNERS[a](table), PARTNERS[b](table), _solved(table), ~_wrong(table)
+    out = {}
+    for solver in SOLVERS:
+        mine = (table["solver"] == solver).to_numpy()
+        good, bad = mine & right, mine & ~right & ok
+
+        def above(v, rows):
+            return float(np.nextafter(v[rows].max(), np.inf)) if rows.any() else -np.inf
+
+        if mode == "OR":
+            out[solver] = (above(va, bad), above(vb, bad))
+            continue
+        best = None
+        for x in np.concatenate([[-np.inf], np.nextafter(np.unique(va[mine]), np.inf)]):
+            y = above(vb, bad & (va >= x))
+            failed = int((good & ~(ok & (va >= x) & (vb >= y))).sum())
+            if best is None or failed < best[0]:
+                best = (failed, float(x), y)
+        out[solver] = best[1:]
+    return out
+
+
+def combined_verdicts(table, a: str, b: str, mode: str, least: dict) -> np.ndarray:
+    """REGISTERED: solved, (Kabsch) of a plausible scale, and ``a >= x`` AND / OR ``b >= y`` (``least[solver]``)."""
+    x, y = (np.array([least[s][i] for s in table["solver"]], dtype=float) for i in (0, 1))
+    pa, pb = PARTNERS[a](table) >= x, PARTNERS[b](table) >= y
+    return _solved(table) & ((pa & pb) if mode == "AND" else (pa | pb))
+
+
+def combinations() -> list[tuple[str, str, str]]:
+    """Every ``(a, b, mode)``: each pair of :data:`PARTNERS` in order, ``AND`` then ``OR``."""
+    import itertools
+
+    return [(a, b, mode) for a, b in itertools.combinations(PARTNERS, 2) for mode in MODES]
+
+
+LOGISTIC_C = 1.0  # the L2 weight's inverse on the standardized features
+
+
+def _log_features(table) -> np.ndarray:
+    """log k, log n, log null: every ratio of :data:`STATISTICS` but the binomial is linear in these."""
+    return np.column_stack([np.log(np.maximum(_col(table, "n_inliers"), 1)),
+                            np.log(np.maximum(_col(table, "n_matches"), 1)), np.log(_null(table))])
+
+
+def fit_logistic(table) -> dict:
+    """Per solver a logistic regression of right (within :data:`WRONG`) on :func:`_log_features` of the
+    solved poses of ``table`` (standardized, classes weighted equally, L2 with :data:`LOGISTIC_C`),
+    and its cut on the linear score just above every solved wrong pose: ``{solver: (mean, std,
+    weights, cut)}``. Deterministic (a convex loss, minimized from zero with its gradient)."""
+    from scipy.optimize import minimize
+
+    ok, right = _solved(table), ~_wrong(table)
+    feats, out = _log_features(table), {}
+    for solver in SOLVERS:
+        rows = ok & (table["solver"] == solver).to_numpy()
+        x, y = feats[rows], right[rows].astype(float)
+        mean, std = x.mean(0), x.std(0) + 1e-12
+        z = np.column_stack([(x - mean) / std, np.ones(len(x))])
+        w = np.where(y > 0, len(y) / (2 * max(y.sum(), 1)), len(y) / (2 * max((1 - y).sum(), 1)))
+
+        def loss(beta):
+            s = z @ beta
+            p = 1 / (1 + np.exp(-s))
+            value = (w * (np.logaddexp(0, -s) * y + np.logaddexp(0, s) * (1 - y))).sum()
+            return value + 0.5 / LOGISTIC_C * (beta[:-1] ** 2).sum(), z.T @ (w * (p - y)) + np.r_[beta[:-1] / LOGISTIC_C, 0]
+
+        beta = minimize(loss, np.zeros(z.shape[1]), jac=True, method="L-BFGS-B", options={"gtol": 1e-10}).x
+        score = z @ beta
+        bad = (y == 0)
+        out[solver] = (mean, std, beta, float(np.nextafter(score[bad].max(), np.inf)) if bad.any() else -np.inf)
+    return out
+
+
+def logistic_verdicts(table, model: dict) -> np.ndarray:
+    """REGISTERED: solved, (Kabsch) of a plausible scale, and the :func:`fit_logistic` score at least its cut."""
+    feats, ok = _log_features(table), np.zeros(len(table), dtype=bool)
+    for solver, (mean, std, beta, cut) in model.items():
+        rows = (table["solver"] == solver).to_numpy()
+        ok[rows] = np.column_stack([(feats[rows] - mean) / std, np.ones(int(rows.sum()))]) @ beta >= cut
+    return _solved(table) & ok
+
+
+# Two statistics chosen on the TUM rows among the rules that pass no wrong pose of the ICL fit rows:
+# an upper bound on what such a rule reaches there, not a rule (docs/your_data.md).
+TUM_BOUND = {"kabsch": ("inlier fraction k / n", 0.2851, "inliers k", 29.0),
+             "pnp": ("support k / null", 1.4, "inlier fraction k / n", 0.0967)}
+
+
+def bound_verdicts(table, bound: dict = TUM_BOUND) -> np.ndarray:
+    """REGISTERED: solved, (Kabsch) of a plausible scale, and per solver ``a >= x AND b >= y`` of ``bound``."""
+    ok = np.zeros(len(table), dtype=bool)
+    for solver, (a, x, b, y) in bound.items():
+        rows = (table["solver"] == solver).to_numpy()
+        ok |= rows & (PARTNERS[a](table) >= x) & (PARTNERS[b](table) >= y)
+    return _solved(table) & ok
+
+
+def _meets(r: dict) -> bool:
+    return r["missed_right_rate"] <= TARGETS["right_FAILED"] and r["FP_rate"] <= TARGETS["wrong_REGISTERED"]
+
+
+def combined_lines(fit, tables: dict, target: str | None = None) -> list[str]:
+    """The combined rules' table of docs/your_data.md, counted as :func:`candidate_lines` on ``tables``
+    (``{name: rows}``; the fit rows may be one of them): the rule of :func:`combinations` fitted on
+    ``fit`` (:func:`fit_combined`) with the fewest right fit poses FAILED; the one with the fewest
+    right poses of ``tables[target]`` FAILED among those passing at most 5 % of its wrong ones
+    (chosen on ``target``; default the last table); the logistic regression (:func:`fit_logistic`);
+    and :data:`TUM_BOUND`, labelled as chosen on TUM."""
+    target = target or list(tables)[-1]
+    lines = ["| combined rule | chosen on | least (Kabsch; PnP) |"
+             + "".join(f" {n}: right FAILED | {n}: wrong REGISTERED |" for n in tables),
+             "|" + "---|" * (3 + 2 * len(tables))]
+
+    def line(name, on, least, ok_of):
+        cells = []
+        for sub in tables.values():
+            r = rates(sub, ok_of(sub))
+            cells += [_share(r["missed_right"], r["right"], r["missed_right_ci"]),
+                      _share(r["FP"], r["wrong"], r["FP_ci"])]
+        lines.append(f"| {name} | {on} | {least} | " + " | ".join(cells) + " |")
+
+    def shown(a, b, mode, least):  # a bound of -inf (one statistic alone does as well) is left out
+        def one(x, y):
+            parts = [f"{n} > {np.nextafter(v, -np.inf):.3g}" for n, v in ((a, x), (b, y)) if v != -np.inf]
+            return f" {mode} ".join(parts) or "any solved pose"
+        return "; ".join(one(*least[s]) for s in SOLVERS)
+
+    fitted = [(c, fit_combined(fit, *c)) for c in combinations()]
+    right = ~_wrong(fit)
+
+    def fit_failed(item):
+        return int((right & ~combined_verdicts(fit, *item[0], item[1])).sum())
+
+    for on, pick in (("fit: fewest right FAILED", min(fitted, key=fit_failed)),
+                     (f"{target}: fewest right FAILED, at most 5 % wrong REGISTERED",
+                      min((i for i in fitted if rates(tables[target], combined_verdicts(tables[target], *i[0], i[1]))["FP_rate"]
+                           <= TARGETS["wrong_REGISTERED"]),
+                          key=lambda i: rates(tables[target], combined_verdicts(tables[target], *i[0], i[1]))["missed_right"]))):
+        (a, b, mode), least = pick
+        line(f"{a} {mode} {b}, fitted on the ICL fit rows", on, shown(a, b, mode, least),
+             lambda sub, a=a, b=b, mode=mode, least=least: combined_verdicts(sub, a, b, mode, least))
+    model = fit_logistic(fit)
+    line("logistic regression on log k, log n, log null, fitted on the ICL fit rows", "fit: above every wrong pose",
+         "; ".join(f"{s}: {', '.join(f'{round(v, 2) + 0.0:.2f}' for v in model[s][2])}, cut {round(model[s][3], 2) + 0.0:.2f}"
+                   for s in SOLVERS),
+         lambda sub: logistic_verdicts(sub, model))
+    line("two statistics passing no wrong ICL fit pose, thresholds chosen on TUM (a bound, not a rule)", "TUM",
+         "; ".join(f"{a} >= {x:g} AND {b} >= {y:g}" for a, x, b, y in TUM_BOUND.values()),
+         bound_verdicts)
+    return lines
+
+
 def _set_name(path) -> str:
     """A rows file's name in the candidates table: ``verdict_icl_report_rows.csv`` -> ``ICL report``."""
     stem = Path(path).name.split(".")[0].removeprefix("verdict_").removesuffix("_rows")
@@ -387,8 +554,9 @@ def main(argv=None) -> None:
     if a.targets:
         print("\n".join(target_lines(report, rule)))
     if a.candidates:
-        print("\n".join(candidate_lines(fit, {_set_name(c): read_rows(c) for c in a.candidates},
-                                        {_set_name(c): read_rows(c) for c in a.fit_also})))
+        tables = {_set_name(c): read_rows(c) for c in a.candidates}
+        print("\n".join(candidate_lines(fit, tables, {_set_name(c): read_rows(c) for c in a.fit_also})))
+        print("\n".join(combined_lines(fit, {"ICL fit": fit, **tables})))
 
 
 if __name__ == "__main__":
