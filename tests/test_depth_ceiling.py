@@ -25,6 +25,21 @@ def test_at_resolution_loses_detail_finer_than_the_model_pixels():
     assert np.abs(C.at_resolution(stripes) - 2.5).max() < 0.15  # of 0.5
 
 
+def test_error_bands_split_the_log_error_in_two():
+    truth = np.full((120, 160), 2.0)
+    truth[10:20, 30:60] = 0.0  # a hole
+    stripes = np.where((np.arange(160) // 2) % 2 == 0, 1.1, 1 / 1.1)[None]  # 2-pixel stripes: all fine
+    depth = np.where(truth > 0, truth * 1.3 * stripes, 0.0)  # one scale (all coarse) times the stripes
+    coarse, fine = C.error_bands(depth, truth, sigma_px=8)
+    valid = truth > 0
+    np.testing.assert_allclose(coarse[valid] * fine[valid] / truth[valid], depth[valid], rtol=1e-12)  # the parts multiply back
+    assert np.all(coarse[~valid] == 0) and np.all(fine[~valid] == 0)
+    np.testing.assert_allclose(coarse[40:100, 60:130], 2.6, rtol=2e-3)  # the scale, the stripes averaged out
+    np.testing.assert_allclose(fine[40:100, 60:130] / (2.0 * stripes[:, 60:130]), 1.0, atol=2e-3)
+    # beside the hole the coarse band is the neighbours' average, not pulled towards exp(0) by the hole
+    np.testing.assert_allclose(coarse[21, 30:60], 2.6, rtol=5e-3)
+
+
 def test_mean_abs_error_counts_only_pixels_with_a_true_depth():
     truth = np.array([[1.0, 2.0], [0.0, 4.0]])
     depth = np.array([[1.5, 2.0], [9.0, 3.0]])

@@ -8,7 +8,10 @@ side lifted with each depth source in turn, its depth side the sensor's cloud as
 * ``true at 96 x 128``: the true depth brought to the micro ZoeDepth's output size and back
   (area, then bicubic), the ceiling at that model's resolution;
 * each micro ZoeDepth weights folder given (the full inference path,
-  :func:`freereg_lib.models.micro.depth.load`).
+  :func:`freereg_lib.models.micro.depth.load`);
+* for the first folder, its error split in two bands (:func:`error_bands`): the true depth times
+  the model's log error coarser than ``--band-px`` pixels, and times the finer rest; which band
+  costs the inliers says whether a model needs a better overall layout or better local shape.
 
 Per source: IR (the official per-pair measure, :func:`freereg_lib.geometry.metrics.inlier_stats` of
 :func:`freereg_lib.pipeline.steps.correct_matches`) with a 95 % bootstrap interval over pairs, the
@@ -27,6 +30,7 @@ import sys
 import numpy as np
 
 MODEL_HW = (96, 128)  # the micro ZoeDepth's output size (its processor's input)
+BAND_PX = 40.0  # the Gaussian sigma (image pixels) between the coarse and the fine error band
 
 
 def at_resolution(depth: np.ndarray, hw: tuple[int, int] = MODEL_HW) -> np.ndarray:
@@ -36,6 +40,30 @@ def at_resolution(depth: np.ndarray, hw: tuple[int, int] = MODEL_HW) -> np.ndarr
     small = cv2.resize(depth.astype(np.float32), (hw[1], hw[0]), interpolation=cv2.INTER_AREA)
     back = cv2.resize(small, (depth.shape[1], depth.shape[0]), interpolation=cv2.INTER_CUBIC)
     return np.where(depth > 0, back, 0.0).astype(np.float64)
+
+
+def error_bands(depth: np.ndarray, truth: np.ndarray, sigma_px: float = BAND_PX) -> tuple[np.ndarray, np.ndarray]:
+    """``(H, W) float64`` depths ``truth * exp(coarse)`` and ``truth * exp(fine)``, where the log error
+    ``log(depth) - log(truth)`` on pixels with a true depth is ``coarse + fine``: ``coarse`` is its
+    Gaussian average of ``sigma_px`` over those pixels only (a normalised convolution, so holes do not
+    pull it to 0), ``fine`` the rest. Holes (truth 0) stay holes in both."""
+    import cv2
+
+    valid = (truth > 0) & (depth > 0)
+    err = np.zeros(truth.shape, np.float64)
+    err[valid] = np.log(depth[valid]) - np.log(truth[valid])
+
+    def blur(x):
+        return cv2.GaussianBlur(x, (0, 0), sigma_px, borderType=cv2.BORDER_REFLECT)
+
+    weight = blur(valid.astype(np.float64))
+    coarse = np.where(valid, blur(err) / np.maximum(weight, 1e-12), 0.0)
+    return np.where(valid, truth * np.exp(coarse), 0.0), np.where(valid, truth * np.exp(err - coarse), 0.0)
+
+
+def band_names(folder: str, sigma_px: float = BAND_PX) -> tuple[str, str]:
+    return (f"true x the coarse error (> {sigma_px:g} px) of {folder}",
+            f"true x the fine error (< {sigma_px:g} px) of {folder}")
 
 
 def geometric_ir(pair, depth: np.ndarray, backend, cfg) -> tuple[float, int]:
@@ -56,8 +84,9 @@ def mean_abs_error(depth: np.ndarray, truth: np.ndarray) -> float:
     return float(np.abs(depth[valid] - truth[valid]).mean())
 
 
-def measure(pairs, weights: list[str], cfg, progress: bool = True) -> dict[str, list[dict]]:
-    """Per source name, one ``{"pair", "IR", "n_evaluable", "MAE"}`` row per pair, with ``cfg``."""
+def measure(pairs, weights: list[str], cfg, progress: bool = True, band_px: float = BAND_PX) -> dict[str, list[dict]]:
+    """Per source name, one ``{"pair", "IR", "n_evaluable", "MAE"}`` row per pair, with ``cfg``; the
+    first folder's error bands (:func:`error_bands`) as two more sources."""
     from tqdm.auto import tqdm
 
     from freereg_lib.models import get_backend
@@ -65,10 +94,14 @@ def measure(pairs, weights: list[str], cfg, progress: bool = True) -> dict[str, 
 
     backend = get_backend("stub", cfg)  # no monocular depth is asked of it: every source is given
     models = {w: micro_depth.load(w) for w in weights}
-    rows: dict[str, list[dict]] = {"true": [], "true at 96 x 128": [], **{w: [] for w in weights}}
+    bands = band_names(weights[0], band_px) if weights else ()
+    rows: dict[str, list[dict]] = {"true": [], "true at 96 x 128": [], **{w: [] for w in weights},
+                                   **{b: [] for b in bands}}
     for pair in tqdm(pairs, desc="pairs", disable=not progress):
         sources = {"true": pair.depth_gt, "true at 96 x 128": at_resolution(pair.depth_gt)}
         sources.update({w: np.asarray(est(pair.image), dtype=np.float64) for w, est in models.items()})
+        if bands:
+            sources.update(zip(bands, error_bands(sources[weights[0]], pair.depth_gt, band_px)))
         for name, depth in sources.items():
             ir, n_evaluable = geometric_ir(pair, depth, backend, cfg)
             rows[name].append({"pair": pair.name, "IR": ir, "n_evaluable": n_evaluable,
@@ -116,17 +149,22 @@ def main(argv=None) -> None:
     p.add_argument("--split", default="rooms-dev", choices=sorted(SPLITS))
     p.add_argument("--pairs", type=int, default=None, help="the first N pairs of the split (default: all)")
     p.add_argument("--weights", nargs="*", default=[], help="micro ZoeDepth folders")
+    p.add_argument("--band-px", type=float, default=BAND_PX,
+                   help="Gaussian sigma (pixels) between the first model's coarse and fine error bands")
     p.add_argument("--out", default=None, help="write the rows and the summary here (JSON)")
     a = p.parse_args(argv)
+    if a.band_px <= 0:
+        p.error(f"--band-px must be > 0, got {a.band_px}")
     split = SPLITS[a.split]
     n = split.n_pairs if a.pairs is None else a.pairs
     guard_eval_seed(split.seed, n)
     cfg = FreeRegConfig(seed=split.noise_seed)
     pairs = [synthetic.make_pair("indoor", seed=s, world=split.world) for s in split.pair_seeds(n)]  # as evaluate_split
-    rows = measure(pairs, list(a.weights), cfg)
+    rows = measure(pairs, list(a.weights), cfg, band_px=a.band_px)
     summary = summarize(rows, list(a.weights))
     res = stamped({"split": split.name, "dataset_seed": split.seed, "n_pairs": n,
                    "config": {"geometric": cfg.geometric, "densify": cfg.densify, "seed": cfg.seed},
+                   "band_px": a.band_px,
                    "summary": summary, "rows": rows,
                    "command": "python -m freereg_lib.training.depth_ceiling " + " ".join(sys.argv[1:] if argv is None else argv)})
     publish(res, table(summary), a.out)

@@ -5,7 +5,7 @@ The class, the image processor and the inference path are the ones the ``real`` 
 ``int(sqrt(h / 2) * 3)`` pixels, resize keeping the aspect ratio to a multiple of the patch
 size, flip averaging, bicubic resize back, padding cropped); only the sizes are small:
 
-* backbone, one of :data:`BACKBONES`:
+* backbone, one of ``BACKBONES``:
 
   - ``beit`` (the committed weights'): BEiT with relative position bias (as ZoeDepth's BEiT-L),
     4 layers x 128 channels, patch 16, its four stages read after layers 1..4; at 96 x 128 that is
@@ -81,7 +81,7 @@ FILES = ("config.json", "model.safetensors", "preprocessor_config.json")
 
 
 def config(backbone: str = "beit"):
-    """The micro ``ZoeDepthConfig`` with ``backbone`` (one of :data:`BACKBONES`)."""
+    """The micro ``ZoeDepthConfig`` with ``backbone`` (one of ``BACKBONES``)."""
     from transformers import BeitConfig, Swinv2Config, ZoeDepthConfig
 
     if backbone not in BACKBONES:
@@ -97,7 +97,7 @@ def processor():
 
 
 def build(seed: int = 0, backbone: str = "beit"):
-    """A fresh micro ``ZoeDepthForDepthEstimation`` (``backbone`` one of :data:`BACKBONES`) with
+    """A fresh micro ``ZoeDepthForDepthEstimation`` (``backbone`` one of ``BACKBONES``) with
     seeded random weights (train mode).
 
     transformers' default init (std 0.02) leaves the small neck's signal near zero, so every
