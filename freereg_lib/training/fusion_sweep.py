@@ -38,14 +38,15 @@ def _ir(pair, feats, w, cfg) -> float:
     return metrics.inlier_stats(*pipeline.correct_matches(pair, feats, m, cfg), cfg.eval_few_matches)[0]
 
 
-def choose_fpfh(split, pairs_feats, settings: list[tuple[float, float]], cfg) -> tuple[dict, list]:
-    """Per setting, FreeReg-G's IR; the geometric features of the best setting replace the cached ones."""
+def choose_fpfh(split, pairs_feats, settings: list[tuple[float, float]], cfg, weights_dir=None) -> tuple[dict, list]:
+    """Per setting, FreeReg-G's IR; the geometric features of the best setting replace the cached ones.
+    ``weights_dir``: the micro weights whose depth model lifted the cached features (None: the committed)."""
     from dataclasses import replace
 
     from freereg_lib import pipeline
     from freereg_lib.models import get_backend
 
-    backend = get_backend("micro", cfg, device="cpu")
+    backend = get_backend("micro", cfg, device="cpu", weights_dir=weights_dir)
     geo = {st: [] for st in settings}
     irs = {st: [] for st in settings}
     for pair, feats in tqdm(pairs_feats, desc=f"FPFH settings, {split.name}"):
@@ -64,7 +65,7 @@ def choose_fpfh(split, pairs_feats, settings: list[tuple[float, float]], cfg) ->
 
 
 def sweep(split_name: str, cache: Path, ws: list[float], solvers: list[str], n_pairs: int | None = None,
-          fpfh: list[tuple[float, float]] | None = None) -> dict:
+          fpfh: list[tuple[float, float]] | None = None, weights_dir=None) -> dict:
     from freereg_lib import pipeline
     from freereg_lib.config import FreeRegConfig
     from freereg_lib.data import synthetic
@@ -82,7 +83,7 @@ def sweep(split_name: str, cache: Path, ws: list[float], solvers: list[str], n_p
                     load_features(Path(cache) / f"{k}.npz")) for k in range(n)]
     fpfh_choice = None
     if fpfh:
-        fpfh_choice, pairs_feats = choose_fpfh(split, pairs_feats, fpfh, cfg)
+        fpfh_choice, pairs_feats = choose_fpfh(split, pairs_feats, fpfh, cfg, weights_dir)
     for pair, feats in tqdm(pairs_feats, desc=f"w sweep, {split.name}"):
         for w in ws:
             m = pipeline.match(feats, w)
@@ -132,10 +133,12 @@ def main(argv=None) -> int:
     p.add_argument("--w", type=float, nargs="+", default=[0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9])
     p.add_argument("--solvers", nargs="+", default=["kabsch"], choices=["kabsch", "pnp"])
     p.add_argument("--fpfh", nargs="+", default=None, help="VOXEL:FACTOR FPFH settings (the best by FreeReg-G IR is used)")
+    p.add_argument("--weights", default=None,
+                   help="with --fpfh: the micro weights folder the features were cached with (default: the committed)")
     p.add_argument("--out", default=None)
     args = p.parse_args(argv)
     fpfh = [tuple(float(x) for x in st.split(":")) for st in args.fpfh] if args.fpfh else None
-    res = sweep(args.split, Path(args.cache), args.w, args.solvers, args.pairs, fpfh)
+    res = sweep(args.split, Path(args.cache), args.w, args.solvers, args.pairs, fpfh, args.weights)
     res["commands"] = ["python -m freereg_lib.training.fusion_sweep " + " ".join(sys.argv[1:] if argv is None else argv)]
     res["git_head"] = _git_head()
     publish(res, report(res), args.out)
