@@ -318,14 +318,11 @@ def statistic_verdicts(table, stat: str, least: dict) -> np.ndarray:
     return _solved(table) & (STATISTICS[stat](table) >= need)
 
 
-def candidate_lines(fit, tables: dict, extra: dict | None = None) -> list[str]:
-    """The candidates table of docs/your_data.md: the command's rule, then each statistic of
-    :data:`STATISTICS` fitted by each criterion of :data:`CRITERIA` on ``fit`` (and by the first on
-    ``fit`` plus each of ``extra``, ``{name: rows}``), with the right poses FAILED and the wrong ones
-    REGISTERED (the paper's (20 deg, 0.5 m); 95 % Clopper-Pearson) on each of ``tables`` (``{name: rows}``)."""
-    import pandas as pd
-
-    lines = ["| statistic | fitted on | least (Kabsch; PnP) |"
+def _rates_table(rule_col: str, on_col: str, tables: dict):
+    """A markdown table's header lines and ``line(name, on, least, ok_of)``, which appends a rule's row:
+    its right poses FAILED and wrong ones REGISTERED on each of ``tables`` (``{name: rows}``), where
+    ``ok_of(rows)`` is the rule's REGISTERED mask."""
+    lines = [f"| {rule_col} | {on_col} | least (Kabsch; PnP) |"
              + "".join(f" {n}: right FAILED | {n}: wrong REGISTERED |" for n in tables),
              "|" + "---|" * (3 + 2 * len(tables))]
 
@@ -336,6 +333,18 @@ def candidate_lines(fit, tables: dict, extra: dict | None = None) -> list[str]:
             cells += [_share(r["missed_right"], r["right"], r["missed_right_ci"]),
                       _share(r["FP"], r["wrong"], r["FP_ci"])]
         lines.append(f"| {name} | {on} | {least} | " + " | ".join(cells) + " |")
+
+    return lines, line
+
+
+def candidate_lines(fit, tables: dict, extra: dict | None = None) -> list[str]:
+    """The candidates table of docs/your_data.md: the command's rule, then each statistic of
+    :data:`STATISTICS` fitted by each criterion of :data:`CRITERIA` on ``fit`` (and by the first on
+    ``fit`` plus each of ``extra``, ``{name: rows}``), with the right poses FAILED and the wrong ones
+    REGISTERED (the paper's (20 deg, 0.5 m); 95 % Clopper-Pearson) on each of ``tables`` (``{name: rows}``)."""
+    import pandas as pd
+
+    lines, line = _rates_table("statistic", "fitted on", tables)
 
     rule = command_rule()
     line("the command: support k / null, on a grid of 0.25", "fit",
@@ -475,17 +484,7 @@ def combined_lines(fit, tables: dict, target: str | None = None) -> list[str]:
     (chosen on ``target``; default the last table); the logistic regression (:func:`fit_logistic`);
     and :data:`TUM_BOUND`, labelled as chosen on TUM."""
     target = target or list(tables)[-1]
-    lines = ["| combined rule | chosen on | least (Kabsch; PnP) |"
-             + "".join(f" {n}: right FAILED | {n}: wrong REGISTERED |" for n in tables),
-             "|" + "---|" * (3 + 2 * len(tables))]
-
-    def line(name, on, least, ok_of):
-        cells = []
-        for sub in tables.values():
-            r = rates(sub, ok_of(sub))
-            cells += [_share(r["missed_right"], r["right"], r["missed_right_ci"]),
-                      _share(r["FP"], r["wrong"], r["FP_ci"])]
-        lines.append(f"| {name} | {on} | {least} | " + " | ".join(cells) + " |")
+    lines, line = _rates_table("combined rule", "chosen on", tables)
 
     def shown(a, b, mode, least):  # a bound of -inf (one statistic alone does as well) is left out
         def one(x, y):
